@@ -1,0 +1,1 @@
+"""Shared environment and data-collection code for CLAW."""

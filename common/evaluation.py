@@ -1,0 +1,65 @@
+"""Test-time adaptation protocols shared by every method script (paper Exp 1 and Exp 2).
+
+The protocols only roll environments and time-steps; the method lives in two callables the
+script passes in:
+    adapt(context) -> None          # CLAW: one hypernet pass; DR/ST: gradient step(s); oracle: no-op
+    act(obs, first_step) -> action  # the planner with the currently adapted weights
+`context` is the dict returned by `common.context.collect_episodes` (pi_con data).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import scipy.stats
+
+AdaptFn = Callable[[dict], None]
+ActFn = Callable[[np.ndarray, bool], np.ndarray]
+
+
+def online_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_steps: int, seed: int) -> list[dict]:
+    """Exp 1: roll out for `num_steps` agent steps, re-adapting before every planner call.
+
+    Returns one record per finished episode: the test-time step at which it ended, its return
+    and its final-step success (always 0.0 outside Meta-World)."""
+    records = []
+    obs, _ = env.reset(seed=seed)
+    first_step, episode_return = True, 0.0
+    for step in range(1, num_steps + 1):
+        adapt(context)
+        action = act(obs, first_step)
+        obs, reward, terminated, truncated, info = env.step(action)
+        episode_return += float(reward)
+        first_step = False
+        if terminated or truncated:
+            records.append({"step": step, "return": episode_return, "success": float(info.get("success", 0.0))})
+            obs, _ = env.reset()
+            first_step, episode_return = True, 0.0
+    return records
+
+
+def offline_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_episodes: int, seed: int) -> list[dict]:
+    """Exp 2: adapt once on the fixed context data, freeze, and evaluate `num_episodes` episodes."""
+    adapt(context)
+    records = []
+    for episode in range(num_episodes):
+        obs, _ = env.reset(seed=seed + episode)
+        first_step, episode_return, done = True, 0.0, False
+        while not done:
+            obs, reward, terminated, truncated, info = env.step(act(obs, first_step))
+            episode_return += float(reward)
+            first_step, done = False, terminated or truncated
+        records.append({"return": episode_return, "success": float(info.get("success", 0.0))})
+    return records
+
+
+def mean_ci(values, confidence: float = 0.95) -> tuple[float, float]:
+    """Mean and half-width of the Student-t confidence interval of the mean (paper: across seeds).
+
+    A single value has no spread estimate: its half-width is NaN, not zero."""
+    values = np.asarray(values, dtype=np.float64)
+    mean = float(values.mean())
+    if values.size < 2:
+        return mean, float("nan")
+    sem = scipy.stats.sem(values)
+    return mean, float(sem * scipy.stats.t.ppf(0.5 + confidence / 2, values.size - 1))
