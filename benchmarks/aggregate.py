@@ -1,0 +1,140 @@
+"""Aggregate a sweep: read each run's TensorBoard events, group runs that differ only by seed,
+and report mean and 95% Student-t CI across seeds as CSV and a markdown table.
+
+    python benchmarks/aggregate.py runs/sweeps/cpu      # writes summary.csv, curves.csv, summary.md there
+
+Metrics per run (keys written by every method script):
+  online_return / online_success   mean over all Exp 1 test-time episodes (family average)
+  offline_return / offline_success Exp 2 at each sweep point x = offline gradient steps
+                                   (CLAW, FiLM, Concat: x = 0, their single adaptation pass)
+  online_return_env{j}             Exp 1 return in environment j alone
+Curves (Exp 1): family-averaged return and success per test-time step, averaged across seeds.
+Runs that failed, are still running, or lack evaluation events are listed, never dropped silently.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import glob
+import json
+import os
+import sys
+from collections import defaultdict
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
+
+from common.evaluation import mean_ci  # noqa: E402
+
+GROUP_KEYS = ("method", "family", "size", "rank")
+
+
+def load_runs(root: str) -> list[dict]:
+    """run.json of every run under root, with its scalars as {tag: [(step, value), ...]}."""
+    runs = []
+    for path in sorted(glob.glob(os.path.join(root, "*", "run.json"))):
+        with open(path) as f:
+            run = json.load(f)
+        run["dir"] = os.path.dirname(path)
+        events = EventAccumulator(run["dir"], size_guidance={"scalars": 0}).Reload()
+        run["scalars"] = {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+        runs.append(run)
+    return runs
+
+
+def run_metrics(run: dict) -> dict:
+    """{(metric, x): value} of one run; x is None for scalars without a sweep axis."""
+    scalars, metrics = run["scalars"], {}
+    for key in ("return", "success"):
+        online = scalars.get(f"eval/online/{'episodic_return' if key == 'return' else key}", [])
+        if online:
+            metrics[(f"online_{key}", None)] = sum(v for _, v in online) / len(online)
+        for step, value in scalars.get(f"eval/offline/{'episodic_return' if key == 'return' else key}", []):
+            metrics[(f"offline_{key}", step)] = value
+    for tag, values in scalars.items():  # per environment, e.g. Exp 5 scores Cheetah (env 0) alone
+        parts = tag.split("/")
+        if len(parts) == 4 and parts[:2] == ["eval", "online"] and parts[3] == "episodic_return":
+            metrics[(f"online_return_{parts[2]}", None)] = sum(v for _, v in values) / len(values)
+    return metrics
+
+
+def problem(run: dict) -> str | None:
+    """Why a run cannot be aggregated, or None."""
+    if run.get("status") != "done":
+        return f"status {run.get('status', 'unknown')}" + (f" (returncode {run['returncode']})" if "returncode" in run else "")
+    if not run_metrics(run):
+        return "finished without evaluation events"
+    return None
+
+
+def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str, str]]]:
+    """-> summary rows, curve rows, [(run dir, problem)]."""
+    groups, problems = defaultdict(list), []
+    for run in runs:
+        issue = problem(run)
+        if issue:
+            problems.append((run["dir"], issue))
+        else:
+            groups[tuple(run[k] for k in GROUP_KEYS)].append(run)
+    rows, curves = [], []
+    for key, members in sorted(groups.items(), key=lambda kv: tuple(str(k) for k in kv[0])):
+        per_metric = defaultdict(list)
+        for run in members:
+            for metric, value in run_metrics(run).items():
+                per_metric[metric].append(value)
+        for (metric, x), values in sorted(per_metric.items(), key=lambda kv: (kv[0][0], kv[0][1] or 0)):
+            mean, half = mean_ci(values)
+            rows.append({**dict(zip(GROUP_KEYS, key)), "metric": metric, "x": x, "n": len(values), "mean": mean, "ci95": half,
+                         "seeds": ",".join(str(r["seed"]) for r in members)})
+        for metric in ("episodic_return", "success"):
+            by_step = defaultdict(list)
+            for run in members:
+                for step, value in run["scalars"].get(f"eval/online/{metric}", []):
+                    by_step[step].append(value)
+            for step, values in sorted(by_step.items()):
+                mean, half = mean_ci(values)
+                curves.append({**dict(zip(GROUP_KEYS, key)), "metric": f"online_{metric.replace('episodic_', '')}",
+                               "step": step, "n": len(values), "mean": mean, "ci95": half})
+    return rows, curves, problems
+
+
+def write_csv(path: str, rows: list[dict]):
+    if not rows:
+        return
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def markdown(rows: list[dict], problems: list[tuple[str, str]]) -> str:
+    lines = ["| method | family | size | rank | metric | x | seeds | mean | 95% CI |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        x = "" if r["x"] is None else r["x"]
+        lines.append(f"| {r['method']} | {r['family']} | {r['size']} | {r['rank']} | {r['metric']} | {x} | {r['n']} | "
+                     f"{r['mean']:.1f} | ± {r['ci95']:.1f} |")
+    if problems:
+        lines += ["", "Runs not aggregated:", ""] + [f"- `{os.path.basename(d)}`: {why}" for d, why in problems]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("root", help="sweep directory, e.g. runs/sweeps/cpu")
+    cli = parser.parse_args(argv)
+    runs = load_runs(cli.root)
+    if not runs:
+        raise SystemExit(f"error: no run.json under {cli.root!r}; run benchmarks/experiments.py first")
+    rows, curves, problems = summarize(runs)
+    write_csv(os.path.join(cli.root, "summary.csv"), rows)
+    write_csv(os.path.join(cli.root, "curves.csv"), curves)
+    table = markdown(rows, problems)
+    with open(os.path.join(cli.root, "summary.md"), "w") as f:
+        f.write(table)
+    print(table)
+    print(f"{len(runs)} runs, {len(problems)} not aggregated; wrote summary.csv, curves.csv, summary.md in {cli.root}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,194 @@
+"""The paper's figures from a sweep (PNG, matplotlib), drawn from the same aggregation as the tables.
+
+    python benchmarks/figures.py runs/sweeps/cpu [--out DIR]
+
+exp1.png  return (success for Reach/Push) vs test-time steps per family: CLAW, DR, ST, Oracle
+exp2.png  return vs offline gradient steps (symlog x); CLAW's single pass as a horizontal band
+exp3.png  Cheetah/Walker return vs base parameter count (log x) for CLAW, FiLM, Concat; ratio to CLAW
+exp4.png  return vs LoRA rank, and vs adapter size as % of the world model, FiLM/Concat for reference
+exp5.png  Cheetah return: CLAW (joint) vs post-hoc hypernet
+A figure whose runs are missing is skipped with a message. Bands and error bars are 95% t-CIs.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from benchmarks.aggregate import load_runs, summarize  # noqa: E402
+
+COLORS = {"claw": "tab:red", "dr": "tab:blue", "st": "tab:green", "oracle": "black", "film": "tab:purple",
+          "concat": "tab:orange", "posthoc": "tab:gray"}
+LABELS = {"claw": "CLAW", "dr": "DR", "st": "ST", "oracle": "Oracle", "film": "FiLM", "concat": "Concat", "posthoc": "Post-hoc"}
+METAWORLD = ("reach", "push")
+
+
+def _ci(value):
+    return 0.0 if value is None or math.isnan(value) else value
+
+
+def world_model_sizes(size: str, rank: int, obs_dim: int = 24, act_dim: int = 6) -> tuple[int, int, int]:
+    """(base params, world-model params without policy, world-model LoRA params at rank)."""
+    import claw_tdmpc2 as claw
+
+    model = claw.WorldModel(obs_dim, act_dim, size, claw.Args())
+    base = sum(p.numel() for p in model.base_parameters())
+    _, n_wm, _ = claw.lora_layout(model, rank)
+    return base, base - sum(p.numel() for p in model.policy.parameters()), n_wm
+
+
+def select(rows, **match):
+    return [r for r in rows if all(r[k] == v for k, v in match.items())]
+
+
+def figure_exp1(rows, curves, out) -> str | None:
+    families = sorted({c["family"] for c in curves if c["method"] in ("dr", "st", "oracle")})
+    if not families:
+        return "exp1: no DR/ST/Oracle runs"
+    fig, axes = plt.subplots(1, len(families), figsize=(4.5 * len(families), 3.5), squeeze=False)
+    for ax, family in zip(axes[0], families):
+        metric = "online_success" if family in METAWORLD else "online_return"
+        for method in ("claw", "dr", "st", "oracle"):
+            points = select(curves, family=family, method=method, metric=metric)
+            if points:
+                x, y = [p["step"] for p in points], [p["mean"] for p in points]
+                ci = [_ci(p["ci95"]) for p in points]
+                ax.plot(x, y, color=COLORS[method], label=LABELS[method])
+                ax.fill_between(x, [a - b for a, b in zip(y, ci)], [a + b for a, b in zip(y, ci)], color=COLORS[method], alpha=0.2)
+        ax.set(title=family, xlabel="test-time environment steps", ylabel="success" if metric == "online_success" else "episode return")
+    axes[0][0].legend()
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "exp1.png"), dpi=120)
+    return None
+
+
+def figure_exp2(rows, curves, out) -> str | None:
+    families = sorted({r["family"] for r in rows if r["metric"] == "offline_return" and r["method"] in ("dr", "st", "oracle")})
+    if not families:
+        return "exp2: no DR/ST/Oracle offline sweeps"
+    fig, axes = plt.subplots(1, len(families), figsize=(4.5 * len(families), 3.5), squeeze=False)
+    for ax, family in zip(axes[0], families):
+        metric = "offline_success" if family in METAWORLD else "offline_return"
+        for method in ("dr", "st", "oracle"):
+            points = select(rows, family=family, method=method, metric=metric)
+            if points:
+                ax.errorbar([p["x"] for p in points], [p["mean"] for p in points], yerr=[_ci(p["ci95"]) for p in points],
+                            color=COLORS[method], label=LABELS[method], marker="o", capsize=3)
+        for p in select(rows, family=family, method="claw", metric=metric):
+            ax.axhline(p["mean"], color=COLORS["claw"], label="CLAW (1 hypernet pass)")
+            ax.axhspan(p["mean"] - _ci(p["ci95"]), p["mean"] + _ci(p["ci95"]), color=COLORS["claw"], alpha=0.15)
+        ax.set_xscale("symlog", linthresh=1)
+        ax.set(title=family, xlabel="offline gradient steps", ylabel="success" if metric == "offline_success" else "episode return")
+    axes[0][0].legend()
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "exp2.png"), dpi=120)
+    return None
+
+
+def figure_exp3(rows, curves, out) -> str | None:
+    cw = [r for r in select(rows, family="cheetah_walker", metric="online_return") if r["method"] in ("claw", "film", "concat")]
+    tied = {"A": 16, "B": 16, "D": 16, "E": 16, "F": 8, "G": 4, "H": 2, "I": 1}
+    cw = [r for r in cw if r["method"] != "claw" or r["rank"] == tied[r["size"]]]
+    if len({r["size"] for r in cw}) < 2:
+        return "exp3: fewer than two model sizes on cheetah_walker"
+    fig, (ax, ax_ratio) = plt.subplots(1, 2, figsize=(9, 3.5))
+    claw_by_size = {r["size"]: r["mean"] for r in cw if r["method"] == "claw"}
+    for method in ("claw", "film", "concat"):
+        points = sorted((world_model_sizes(r["size"], r["rank"])[0], r) for r in cw if r["method"] == method)
+        if not points:
+            continue
+        ax.errorbar([p for p, _ in points], [r["mean"] for _, r in points], yerr=[_ci(r["ci95"]) for _, r in points],
+                    color=COLORS[method], label=LABELS[method], marker="o", capsize=3)
+        ratio = [(p, r["mean"] / claw_by_size[r["size"]]) for p, r in points if claw_by_size.get(r["size"])]
+        if ratio:
+            ax_ratio.plot(*zip(*ratio), color=COLORS[method], marker="o", label=LABELS[method])
+    ax.set(xscale="log", xlabel="base parameters", ylabel="episode return", title="return vs model size")
+    ax_ratio.set(xscale="log", xlabel="base parameters", ylabel="return / CLAW return", title="relative to CLAW")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "exp3.png"), dpi=120)
+    return None
+
+
+def figure_exp4(rows, curves, out) -> str | None:
+    cw = select(rows, family="cheetah_walker", metric="online_return")
+    claw = [r for r in cw if r["method"] == "claw"]
+    size_counts = {}
+    for r in claw:
+        size_counts[r["size"]] = size_counts.get(r["size"], 0) + 1
+    if not size_counts or max(size_counts.values()) < 2:
+        return "exp4: fewer than two ranks at one size on cheetah_walker"
+    size = max(size_counts, key=size_counts.get)
+    claw = sorted((r for r in claw if r["size"] == size), key=lambda r: r["rank"])
+    _, world_model, _ = world_model_sizes(size, 1)
+    fig, (ax_rank, ax_pct) = plt.subplots(2, 1, figsize=(4.5, 6))
+    ranks = [r["rank"] for r in claw]
+    percents = [100 * world_model_sizes(size, r["rank"])[2] / world_model for r in claw]
+    for ax, x in ((ax_rank, ranks), (ax_pct, percents)):
+        ax.errorbar(x, [r["mean"] for r in claw], yerr=[_ci(r["ci95"]) for r in claw], color=COLORS["claw"], marker="o", capsize=3, label="CLAW")
+    for method in ("film", "concat"):
+        for r in select(cw, method=method, size=size):
+            ax_rank.axhline(r["mean"], color=COLORS[method], linestyle="--", label=LABELS[method])
+            if method == "film":  # FiLM spends a scale and a shift per world-model hidden feature
+                film_percent = 100 * film_parameters(size) / world_model
+                ax_pct.errorbar([film_percent], [r["mean"]], yerr=[_ci(r["ci95"])], color=COLORS[method], marker="s", capsize=3, label="FiLM")
+    ax_rank.set(xscale="log", xlabel="LoRA rank", ylabel="episode return", title=f"Cheetah/Walker, size {size}")
+    ax_pct.set(xscale="log", xlabel="adapter size (% of world model)", ylabel="episode return")
+    ax_rank.legend()
+    ax_pct.legend()
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "exp4.png"), dpi=120)
+    return None
+
+
+def film_parameters(size: str) -> int:
+    """World-model FiLM parameters: 2 x output features of every adapted (hidden) layer."""
+    import claw_tdmpc2 as claw
+
+    model = claw.WorldModel(24, 6, size, claw.Args())
+    return sum(2 * getattr(model, name).weights[i].shape[:-1].numel()
+               for name in model.WORLD_MODEL_MODULES for i in range(getattr(model, name).num_normed))
+
+
+def figure_exp5(rows, curves, out) -> str | None:
+    posthoc = select(rows, method="posthoc", metric="online_return_env0")
+    if not posthoc:
+        return "exp5: no post-hoc runs"
+    size, rank = posthoc[0]["size"], posthoc[0]["rank"]
+    joint = select(rows, method="claw", family="cheetah_walker", size=size, rank=rank, metric="online_return_env0")
+    bars = [("CLAW (joint)", joint[0], COLORS["claw"])] if joint else []
+    bars.append(("Post-hoc", posthoc[0], COLORS["posthoc"]))
+    fig, ax = plt.subplots(figsize=(3.5, 3.5))
+    ax.bar([b[0] for b in bars], [b[1]["mean"] for b in bars], yerr=[_ci(b[1]["ci95"]) for b in bars],
+           color=[b[2] for b in bars], capsize=4)
+    ax.set(ylabel="Cheetah episode return", title=f"size {size}, rank {rank}")
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "exp5.png"), dpi=120)
+    return None
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("root", help="sweep directory, e.g. runs/sweeps/cpu")
+    parser.add_argument("--out", default=None, help="output directory (default: root)")
+    cli = parser.parse_args(argv)
+    out = cli.out or cli.root
+    os.makedirs(out, exist_ok=True)
+    rows, curves, problems = summarize(load_runs(cli.root))
+    for dir_, why in problems:
+        print(f"not aggregated: {os.path.basename(dir_)}: {why}")
+    for figure in (figure_exp1, figure_exp2, figure_exp3, figure_exp4, figure_exp5):
+        skipped = figure(rows, curves, out)
+        print(f"skipped {skipped}" if skipped else f"wrote {os.path.join(out, figure.__name__[7:] + '.png')}")
+
+
+if __name__ == "__main__":
+    main()

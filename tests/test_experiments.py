@@ -1,0 +1,86 @@
+"""Sweep tooling: CI math, recipes and launcher, aggregation, figures."""
+import json
+import os
+
+import numpy as np
+import pytest
+import scipy.stats
+
+from benchmarks import aggregate, experiments, figures
+from common.evaluation import mean_ci
+
+
+def test_mean_ci_matches_scipy_on_known_numbers():
+    values = [547.8, 685.8, 721.5, 817.3, 814.2]
+    mean, half = mean_ci(values)
+    low, high = scipy.stats.t.interval(0.95, len(values) - 1, loc=np.mean(values), scale=scipy.stats.sem(values))
+    assert mean == pytest.approx(717.32)
+    assert (mean - half, mean + half) == pytest.approx((low, high))
+    # hand check: sd of [1, 2, 3] is 1, t_{0.975, 2} = 4.302653
+    assert mean_ci([1.0, 2.0, 3.0])[1] == pytest.approx(4.302653 / np.sqrt(3), rel=1e-6)
+    assert np.isnan(mean_ci([5.0])[1])
+
+
+def test_paper_recipes_follow_the_tables():
+    exp12 = experiments.plan_runs(["exp1", "exp2"], "paper")
+    assert len(exp12) == 4 * 4 * 5  # families x methods x seeds, shared by both experiments
+    assert all(r.experiments == ["exp1", "exp2"] and r.size == "A" and r.rank == 16 for r in exp12)
+    exp3 = experiments.recipe("exp3", "paper")
+    assert {(r.size, r.rank) for r in exp3 if r.method == "claw"} == set(experiments.SIZE_RANKS.items())
+    # Exp 3's size-F CLAW runs are Exp 4's rank-8 and Exp 5's CLAW runs: planned once
+    shared = experiments.plan_runs(["exp3", "exp4", "exp5"], "paper")
+    claw_f8 = [r for r in shared if r.method == "claw" and r.size == "F" and r.rank == 8]
+    assert len(claw_f8) == 5 and all(r.experiments == ["exp3", "exp4", "exp5"] for r in claw_f8)
+    assert "--offline-adapt-steps" not in experiments.recipe("exp1", "cpu")[0].command("x")  # CLAW has no sweep
+
+
+def test_launcher_dry_run_lists_commands_and_skips_finished(tmp_path, capsys):
+    runs = experiments.plan_runs(["exp1"], "smoke")
+    done_dir = tmp_path / runs[0].name
+    experiments.write_status(str(done_dir), runs[0], ["x"], "done")
+    interrupted = tmp_path / runs[1].name
+    interrupted.mkdir()
+    (interrupted / "checkpoint.pt").write_bytes(b"")
+    assert experiments.launch(runs, str(tmp_path), workers=2, dry_run=True) == 0
+    out = capsys.readouterr().out
+    assert f"skip (done)  {runs[0].name}" in out
+    assert f"--resume {interrupted / 'checkpoint.pt'}" in out
+    assert out.count("claw_tdmpc2.py") == len([r for r in runs if r.method == "claw"]) - 1
+    with pytest.raises(SystemExit, match="unknown experiment"):
+        experiments.recipe("exp9", "paper")
+
+
+def test_grouping_reports_incomplete_runs(tmp_path):
+    runs = [
+        {"dir": "a", "method": "claw", "family": "reach", "size": "I", "rank": 2, "seed": s, "status": "done",
+         "scalars": {"eval/online/episodic_return": [(100, v), (200, v + 10)], "eval/offline/episodic_return": [(0, v)]}}
+        for s, v in ((1, 10.0), (2, 20.0), (3, 30.0))
+    ]
+    runs.append({"dir": "b", "method": "claw", "family": "reach", "size": "I", "rank": 2, "seed": 4, "status": "failed",
+                 "returncode": 1, "scalars": {}})
+    runs.append({"dir": "c", "method": "claw", "family": "reach", "size": "I", "rank": 2, "seed": 5, "status": "done", "scalars": {}})
+    rows, curves, problems = aggregate.summarize(runs)
+    online = [r for r in rows if r["metric"] == "online_return"][0]
+    assert online["n"] == 3 and online["mean"] == pytest.approx(25.0) and online["seeds"] == "1,2,3"
+    assert online["ci95"] == pytest.approx(mean_ci([15.0, 25.0, 35.0])[1])
+    assert [c["mean"] for c in curves if c["metric"] == "online_return"] == pytest.approx([20.0, 30.0])
+    assert problems == [("b", "status failed (returncode 1)"), ("c", "finished without evaluation events")]
+    assert "Runs not aggregated" in aggregate.markdown(rows, problems)
+
+
+def test_end_to_end_sweep_of_two_tiny_runs(tmp_path):
+    runs = [r for r in experiments.plan_runs(["exp1"], "smoke") if r.method == "claw"]
+    assert len(runs) == 2
+    assert experiments.launch(runs, str(tmp_path), workers=2, dry_run=False) == 0
+    assert all(json.load(open(tmp_path / r.name / "run.json"))["status"] == "done" for r in runs)
+    aggregate.main([str(tmp_path)])
+    summary = (tmp_path / "summary.md").read_text()
+    assert "| claw | reach | I | 2 | online_return |" in summary and "| offline_return | 0 | 2 |" in summary
+    rows, curves, _ = aggregate.summarize(aggregate.load_runs(str(tmp_path)))
+    assert figures.figure_exp1(rows, curves, str(tmp_path)) == "exp1: no DR/ST/Oracle runs"
+    # the launcher skips finished runs on a second call
+    assert experiments.launch(runs, str(tmp_path), workers=1, dry_run=False) == 0
+    # a CLAW-only sweep still draws its curves
+    fig_rows = [dict(r, method="dr") for r in curves]
+    assert figures.figure_exp1(rows, curves + fig_rows, str(tmp_path)) is None
+    assert os.path.getsize(tmp_path / "exp1.png") > 1000
