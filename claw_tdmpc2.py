@@ -58,6 +58,8 @@ class Args:
     """if toggled, `torch.backends.cudnn.deterministic=True`"""
     cuda: bool = True
     """if toggled, cuda will be used when available"""
+    threads: Optional[int] = None
+    """torch CPU threads (default: torch's choice); use 1 per run when several runs share the cores"""
     total_timesteps: Optional[int] = None
     """pretraining agent steps (planner calls); default: the paper's per-family budget"""
     model_size: Literal["A", "B", "D", "E", "F", "G", "H", "I"] = "A"
@@ -68,6 +70,7 @@ class Args:
     """build environments and networks, print the parameter counts and exit"""
 
     # TD-MPC2 optimisation (paper Table "Optimization and planning hyperparameters")
+
     batch_size: int = 256
     learning_rate: float = 3e-4
     encoder_lr_scale: float = 0.3
@@ -93,6 +96,7 @@ class Args:
     """updates after the prefill, before rollouts begin"""
 
     # MPPI planner
+
     iterations: int = 6
     num_samples: int = 512
     num_pi_trajs: int = 24
@@ -102,6 +106,7 @@ class Args:
     max_std: float = 2.0
 
     # CLAW hypernetwork (paper Table "arch"; context batch and buffer sizes are our choice)
+
     adapter_l2: float = 0.01
     """lambda of the adapter L2 penalty"""
     hypernet_lr: float = 3e-4
@@ -116,6 +121,7 @@ class Args:
     """pi_con episodes stored per environment for pretraining"""
 
     # evaluation (paper Exp 1 / Exp 2)
+
     context_episodes: int = 3
     """pi_con episodes collected per test environment"""
     online_eval_steps: int = 30_000
@@ -126,6 +132,7 @@ class Args:
     """run both protocols on every environment after pretraining"""
 
     # logging and persistence
+
     log_every: int = 1000
     """agent steps between progress lines"""
     checkpoint_every: int = 50_000
@@ -141,6 +148,9 @@ class Args:
 def validate_args(args: Args):
     if args.family not in FAMILIES:
         raise SystemExit(f"error: unknown family {args.family!r}; valid families: {', '.join(FAMILIES)}")
+    if not 0 < args.num_elites <= args.num_samples or not 0 <= args.num_pi_trajs < args.num_samples:
+        raise SystemExit("error: need 0 < --num-elites <= --num-samples and 0 <= --num-pi-trajs < --num-samples, got "
+                         f"{args.num_elites}, {args.num_samples}, {args.num_pi_trajs}")
     if args.rank <= 0:
         raise SystemExit(f"error: --rank must be a positive integer, got {args.rank}")
     for name in ("checkpoint", "resume"):
@@ -696,12 +706,14 @@ def main(args: Args):
     validate_args(args)
     if args.eval_only:  # architecture and family come from the checkpoint
         saved = torch.load(args.checkpoint, map_location="cpu", weights_only=False)["args"]
-        for key in ("family", "model_size", "rank", "num_bins", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim"):
+        for key in ("family", "model_size", "rank", "num_bins", "vmin", "vmax", "horizon", "discount", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim"):
             setattr(args, key, saved[key])
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
 
     n_envs, ep_len = num_envs(args.family), episode_length(args.family)

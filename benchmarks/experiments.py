@@ -14,7 +14,7 @@ Exp 3, 4 and 5 share the size-F CLAW runs, so a run needed by several experiment
 Scales:
   paper  the paper's tables: families, sizes, ranks, budgets, 5 seeds (GPU work).
   cpu    fits in about two hours on a 2-core CPU with --workers 2: Reach only for Exp 1/2 and
-         Cheetah/Walker for Exp 3-5, sizes G-I, a few thousand pretraining steps, a 128-sample
+         Cheetah/Walker for Exp 3-5, sizes G-I, 5,000 pretraining steps, a 128-sample
          planner, short evaluations, 3 seeds. Same hyperparameters for every method.
   smoke  seconds-long runs used by the tests.
 """
@@ -46,9 +46,9 @@ SCALES = {
     "cpu": {
         "seeds": (1, 2, 3),
         "exp12_families": ("reach",),
-        "exp12_size": "H", "exp12_rank": 4,
+        "exp12_size": "G", "exp12_rank": 4,
         "exp3_sizes": ("G", "H", "I"), "exp4_size": "H", "exp4_ranks": (1, 4, 16),
-        "common": ["--total-timesteps", "4000", "--seed-steps", "1000", "--burst-updates", "500",
+        "common": ["--total-timesteps", "5000", "--seed-steps", "1000", "--burst-updates", "500",
                    "--num-samples", "128", "--num-elites", "16", "--num-pi-trajs", "8", "--iterations", "4",
                    "--eval-episodes", "3", "--log-every", "500", "--checkpoint-every", "1000"],
         "exp12": ["--online-eval-steps", "600", "--offline-adapt-steps", "0", "1", "10", "100"],
@@ -85,8 +85,9 @@ class Run:
 
     def command(self, run_dir: str) -> list[str]:
         family = [] if self.method == "posthoc" else ["--family", self.family]
+        rank = [] if self.method in ("film", "concat") else ["--rank", str(self.rank)]  # no LoRA, no rank
         return [sys.executable, os.path.join(REPO, SCRIPTS[self.method]), *family, "--model-size", self.size,
-                "--rank", str(self.rank), "--seed", str(self.seed), "--no-cuda", "--run-dir", run_dir, *self.extra]
+                *rank, "--seed", str(self.seed), "--no-cuda", "--run-dir", run_dir, *self.extra]
 
 
 def recipe(experiment: str, scale: str) -> list[Run]:
@@ -207,10 +208,11 @@ def main(argv=None):
     parser.add_argument("--scale", choices=list(SCALES), default="paper")
     parser.add_argument("--workers", type=int, default=1, help="parallel runs")
     parser.add_argument("--root", default=None, help="sweep directory (default runs/sweeps/{scale})")
+    parser.add_argument("--methods", nargs="+", choices=list(SCRIPTS), default=None, help="only these methods' runs")
     parser.add_argument("--dry-run", action="store_true", help="list the commands and exit")
     cli = parser.parse_args(argv)
     root = cli.root or os.path.join("runs", "sweeps", cli.scale)
-    runs = plan_runs(cli.experiments, cli.scale)
+    runs = [r for r in plan_runs(cli.experiments, cli.scale) if cli.methods is None or r.method in cli.methods]
     print(f"{len(runs)} runs for {' '.join(cli.experiments)} at scale {cli.scale} in {root}")
     failed = launch(runs, os.path.abspath(root), cli.workers, cli.dry_run)
     if failed:

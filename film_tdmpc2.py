@@ -1,0 +1,819 @@
+"""FiLM baseline (paper Exp 3/4): CLAW's hypernetwork generating FiLM parameters, on TD-MPC2.
+
+Identical to claw_tdmpc2.py except for what the hypernetwork writes: instead of LoRA factors, a
+per-feature scale and shift (gamma, beta) on the output of every hidden (LayerNorm'd) layer CLAW
+adapts, h = LN(x) (1 + gamma) + beta, folded into the LayerNorm affine. Same trunk, chunked
+generator, template (zeros: identity at init), joint pretraining (paper Alg. 1 and Alg. 2) and
+L2 penalty lambda ||phi||^2, which for FiLM acts on gamma, beta: the deviation from identity.
+Evaluates test-time adaptation: Exp 1 (online, one hypernet pass before every planner call) and
+Exp 2 (offline, one pass then frozen).
+
+    python film_tdmpc2.py --family cheetah_walker --model-size F
+
+Every step count (--total-timesteps, --seed-steps, --online-eval-steps, global_step) counts agent
+steps, i.e. planner calls; with action repeat 2 that is half the simulator steps.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import os
+import random
+import time
+from dataclasses import dataclass
+from typing import Literal, Optional
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import tyro
+from torch.utils.tensorboard import SummaryWriter
+
+from common.context import collect_episodes
+from common.envs import FAMILIES, episode_length, make_env, num_envs
+from common.evaluation import mean_ci, offline_adaptation, online_adaptation
+
+# Paper Table "Per-family pretraining setup" (cheetah_walker: Exp 3-5, 250k per task).
+DEFAULT_TOTAL_TIMESTEPS = {"walker": 600_000, "reach": 50_000, "push": 300_000, "go1": 1_000_000, "cheetah_walker": 500_000}
+# Paper Table "Experiment 3 model-size sweep": encoder hidden, latent, MLP hidden, Q-ensemble size.
+MODEL_SIZES = {
+    "A": ([256], 512, 512, 5),
+    "B": ([256], 128, 384, 2),
+    "D": ([192], 48, 192, 2),
+    "E": ([128], 32, 128, 2),
+    "F": ([64], 32, 64, 2),
+    "G": ([32], 32, 32, 2),
+    "H": ([16], 32, 16, 2),
+    "I": ([8], 32, 8, 2),
+}
+
+
+@dataclass
+class Args:
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment"""
+    family: str = "reach"
+    """environment family: walker, reach, push, go1, cheetah_walker"""
+    seed: int = 1
+    """seed of the experiment"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    cuda: bool = True
+    """if toggled, cuda will be used when available"""
+    threads: Optional[int] = None
+    """torch CPU threads (default: torch's choice); use 1 per run when several runs share the cores"""
+    total_timesteps: Optional[int] = None
+    """pretraining agent steps (planner calls); default: the paper's per-family budget"""
+    model_size: Literal["A", "B", "D", "E", "F", "G", "H", "I"] = "A"
+    """TD-MPC2 model size from the paper's size table (A = 5M parameters)"""
+    dry_run: bool = False
+    """build environments and networks, print the parameter counts and exit"""
+
+    # TD-MPC2 optimisation (paper Table "Optimization and planning hyperparameters")
+
+    batch_size: int = 256
+    learning_rate: float = 3e-4
+    encoder_lr_scale: float = 0.3
+    """encoder lr = learning_rate * encoder_lr_scale (9e-5)"""
+    grad_clip_norm: float = 20.0
+    horizon: int = 3
+    rho: float = 0.5
+    """temporal decay of the multi-step losses"""
+    tau: float = 0.01
+    """target critic EMA rate (decay 0.99)"""
+    discount: Optional[float] = None
+    """default: TD-MPC2's episode-length heuristic clip((L/5-1)/(L/5), 0.95, 0.995)"""
+    consistency_coef: float = 20.0
+    reward_coef: float = 0.1
+    value_coef: float = 0.1
+    entropy_coef: float = 1e-4
+    num_bins: int = 101
+    vmin: float = -10.0
+    vmax: float = 10.0
+    seed_steps: Optional[int] = None
+    """random-action prefill; default max(1000, 5 x episode length)"""
+    burst_updates: int = 1000
+    """updates after the prefill, before rollouts begin"""
+
+    # MPPI planner
+
+    iterations: int = 6
+    num_samples: int = 512
+    num_pi_trajs: int = 24
+    num_elites: int = 64
+    temperature: float = 0.5
+    min_std: float = 0.05
+    max_std: float = 2.0
+
+    # CLAW hypernetwork (paper Table "arch"; context batch and buffer sizes are our choice)
+
+    adapter_l2: float = 0.01
+    """lambda of the adapter L2 penalty (on gamma, beta: the deviation from identity)"""
+    hypernet_lr: float = 3e-4
+    context_dim: int = 64
+    embed_hidden: int = 256
+    generator_hidden: int = 128
+    chunk_size: int = 64
+    chunk_embed_dim: int = 32
+    context_batch_size: int = 256
+    """transitions drawn from an environment's context buffer per hypernet pass in pretraining"""
+    context_buffer_episodes: int = 10
+    """pi_con episodes stored per environment for pretraining"""
+
+    # evaluation (paper Exp 1 / Exp 2)
+
+    context_episodes: int = 3
+    """pi_con episodes collected per test environment"""
+    online_eval_steps: int = 30_000
+    """Exp 1 test-time agent steps per environment"""
+    eval_episodes: int = 10
+    """Exp 2 evaluation episodes per environment"""
+    evaluate_after_training: bool = True
+    """run both protocols on every environment after pretraining"""
+
+    # logging and persistence
+
+    log_every: int = 1000
+    """agent steps between progress lines"""
+    checkpoint_every: int = 50_000
+    checkpoint: Optional[str] = None
+    """checkpoint to evaluate with --eval-only"""
+    eval_only: bool = False
+    resume: Optional[str] = None
+    """checkpoint of a killed run to continue"""
+    run_dir: Optional[str] = None
+    """default runs/{family}__{exp_name}__{seed}__{unix time}"""
+
+
+def validate_args(args: Args):
+    if args.family not in FAMILIES:
+        raise SystemExit(f"error: unknown family {args.family!r}; valid families: {', '.join(FAMILIES)}")
+    if not 0 < args.num_elites <= args.num_samples or not 0 <= args.num_pi_trajs < args.num_samples:
+        raise SystemExit("error: need 0 < --num-elites <= --num-samples and 0 <= --num-pi-trajs < --num-samples, got "
+                         f"{args.num_elites}, {args.num_samples}, {args.num_pi_trajs}")
+    for name in ("checkpoint", "resume"):
+        path = getattr(args, name)
+        if path is not None and not os.path.isfile(path):
+            raise SystemExit(f"error: --{name} {path!r} does not exist")
+    if args.eval_only and args.checkpoint is None:
+        raise SystemExit("error: --eval-only needs --checkpoint PATH")
+
+
+# ---------------------------------------------------------------------------------------------
+# Math: symlog two-hot regression (TD-MPC2)
+# ---------------------------------------------------------------------------------------------
+def symlog(x):
+    return torch.sign(x) * torch.log1p(torch.abs(x))
+
+
+def symexp(x):
+    return torch.sign(x) * torch.expm1(torch.abs(x))
+
+
+def two_hot(x, args: Args):
+    """Scalars [..., 1] -> soft two-hot targets [..., num_bins] in symlog space."""
+    bin_size = (args.vmax - args.vmin) / (args.num_bins - 1)
+    x = (symlog(x).clamp(args.vmin, args.vmax) - args.vmin) / bin_size
+    low = x.floor().clamp(max=args.num_bins - 2)
+    upper_weight = x - low
+    target = torch.zeros(*x.shape[:-1], args.num_bins, device=x.device)
+    target.scatter_(-1, low.long(), 1 - upper_weight)
+    return target.scatter_add_(-1, low.long() + 1, upper_weight)
+
+
+def two_hot_inv(logits, args: Args):
+    """Logits [..., num_bins] -> expected scalar [..., 1]."""
+    bins = torch.linspace(args.vmin, args.vmax, args.num_bins, device=logits.device)
+    return symexp(logits.softmax(-1) @ bins).unsqueeze(-1)
+
+
+def soft_ce(logits, target, args: Args):
+    """Cross-entropy of logits [..., num_bins] against scalar targets [..., 1] -> [..., 1]."""
+    return -(two_hot(target, args) * logits.log_softmax(-1)).sum(-1, keepdim=True)
+
+
+def mish(x):
+    """Mish. Without autograd, the in-place form x * n / (n + 2), n = e^x (e^x + 2), is the same
+    function at about half of F.mish's CPU cost, and the planner runs it ~100 times per call."""
+    if torch.is_grad_enabled():
+        return F.mish(x)
+    e = x.clamp(max=20).exp_()
+    n = e.mul_(e + 2)
+    return n.div_(n + 2).mul_(x)
+
+
+def simnorm(x, group_sums):
+    """Softmax over groups of 8 features. exp / (exp @ block-diagonal ones) is ~10x cheaper on CPU
+    than a softmax over a trailing dim of 8; inputs come out of a LayerNorm, so the clamp never
+    bites in practice and only guards exp against overflow."""
+    e = x.clamp(-60, 60).exp()
+    return e / (e @ group_sums)
+
+
+class RunningScale:
+    """Running P95-P5 range of Q, used to normalise the policy objective (TD-MPC2)."""
+
+    def __init__(self, tau: float, device):
+        self.tau, self.value = tau, torch.ones((), device=device)
+
+    def update(self, q):
+        low, high = torch.quantile(q.detach().flatten().float(), torch.tensor([0.05, 0.95], device=q.device))
+        self.value.lerp_(torch.clamp(high - low, min=1.0), self.tau)
+
+
+# ---------------------------------------------------------------------------------------------
+# Networks: the TD-MPC2 world model with every layer's weight and LayerNorm affine overridable
+# ---------------------------------------------------------------------------------------------
+class MLP(nn.Module):
+    """Linear -> LayerNorm -> Mish layers, last layer plain Linear or Linear -> LayerNorm -> SimNorm.
+
+    `ensemble > 0` stacks that many independent MLPs (the Q ensemble) as batched matmuls.
+    `forward(x, weights)` takes the weight matrices and LayerNorm scales and shifts from outside so
+    FiLM-folded LayerNorms can be swapped in without touching the module; biases stay its own."""
+
+    def __init__(self, dims: list[int], simnorm_out: bool = False, ensemble: int = 0, dropout: float = 0.0):
+        super().__init__()
+        self.ensemble, self.dropout, self.simnorm_out = ensemble, dropout, simnorm_out
+        self.num_normed = len(dims) - 1 if simnorm_out else len(dims) - 2
+        lead = (ensemble,) if ensemble else ()
+        self.weights = nn.ParameterList(
+            nn.Parameter(nn.init.trunc_normal_(torch.empty(*lead, d_out, d_in), std=0.02)) for d_in, d_out in zip(dims[:-1], dims[1:])
+        )
+        # ensemble biases/norm params carry a broadcast dim so they add onto [E, N, d_out]
+        bias_shape = lambda d: (ensemble, 1, d) if ensemble else (d,)  # noqa: E731
+        self.biases = nn.ParameterList(nn.Parameter(torch.zeros(bias_shape(d))) for d in dims[1:])
+        self.norm_weights = nn.ParameterList(nn.Parameter(torch.ones(bias_shape(d))) for d in dims[1 : self.num_normed + 1])
+        self.norm_biases = nn.ParameterList(nn.Parameter(torch.zeros(bias_shape(d))) for d in dims[1 : self.num_normed + 1])
+        if simnorm_out:
+            self.register_buffer("group_sums", torch.block_diag(*[torch.ones(8, 8)] * (dims[-1] // 8)), persistent=False)
+
+    def forward(self, x, weights, detach: bool = False):
+        """x: [N, d_in] ([E, N, d_in] or [N, d_in] for an ensemble) -> [N, d_out] ([E, N, d_out]).
+        weights: (weight matrices, LayerNorm scales, LayerNorm shifts)."""
+        weights, norm_weights, norm_biases = weights
+        for i, weight in enumerate(weights):
+            bias = self.biases[i]
+            if detach:  # a frozen copy: no gradient reaches this module (TD-MPC2's detached Q)
+                weight, bias = weight.detach(), bias.detach()
+            if self.ensemble:
+                x = torch.baddbmm(bias, x.expand(self.ensemble, *x.shape[-2:]), weight.transpose(1, 2))
+            else:
+                x = F.linear(x, weight, bias)
+            if i >= self.num_normed:
+                continue
+            if i == 0 and self.dropout > 0 and self.training:
+                x = F.dropout(x, self.dropout)
+            norm_w, norm_b = norm_weights[i], norm_biases[i]
+            if detach:
+                norm_w, norm_b = norm_w.detach(), norm_b.detach()
+            if self.ensemble:
+                x = torch.addcmul(norm_b, F.layer_norm(x, x.shape[-1:]), norm_w)
+            else:
+                x = F.layer_norm(x, x.shape[-1:], norm_w, norm_b)
+            x = simnorm(x, self.group_sums) if i == len(weights) - 1 else mish(x)
+        return x
+
+
+class WorldModel(nn.Module):
+    """TD-MPC2 state-based model: encoder, latent dynamics, reward, Q ensemble, policy prior."""
+
+    # modules whose hidden layers get world-model adapters, then the policy's (separate slice)
+    WORLD_MODEL_MODULES = ("encoder", "dynamics", "reward", "qs")
+
+    def __init__(self, obs_dim: int, act_dim: int, model_size: str, args: Args):
+        super().__init__()
+        encoder_hidden, latent, hidden, num_q = MODEL_SIZES[model_size]
+        self.act_dim, self.num_q, self.args = act_dim, num_q, args
+        self.encoder = MLP([obs_dim, *encoder_hidden, latent], simnorm_out=True)
+        self.dynamics = MLP([latent + act_dim, hidden, hidden, latent], simnorm_out=True)
+        self.reward = MLP([latent + act_dim, hidden, hidden, args.num_bins])
+        self.qs = MLP([latent + act_dim, hidden, hidden, args.num_bins], ensemble=num_q, dropout=0.01)
+        self.policy = MLP([latent, hidden, hidden, 2 * act_dim])
+        with torch.no_grad():  # zero-init the reward and value heads (TD-MPC2)
+            self.reward.weights[-1].zero_()
+            self.qs.weights[-1].zero_()
+        self.target_qs = copy.deepcopy(self.qs).requires_grad_(False)
+
+    def base_parameters(self):
+        return [p for name, p in self.named_parameters() if not name.startswith("target_qs")]
+
+    def base_weights(self) -> dict:
+        """Weight matrices and LayerNorm affines of every module, the input of the forward functions below."""
+        mlps = {name: getattr(self, name) for name in (*self.WORLD_MODEL_MODULES, "policy", "target_qs")}
+        return {name: (list(mlp.weights), list(mlp.norm_weights), list(mlp.norm_biases)) for name, mlp in mlps.items()}
+
+    def encode(self, obs, weights):
+        return self.encoder(obs, weights["encoder"])
+
+    def next(self, z, action, weights):
+        return self.dynamics(torch.cat([z, action], -1), weights["dynamics"])
+
+    def reward_logits(self, z, action, weights):
+        return self.reward(torch.cat([z, action], -1), weights["reward"])
+
+    def pi(self, z, weights, detach: bool = False):
+        """Squashed Gaussian policy prior: action, and its act_dim-scaled entropy."""
+        mean, log_std = self.policy(z, weights["policy"], detach).chunk(2, -1)
+        log_std = -10 + 6 * (torch.tanh(log_std) + 1)  # range [-10, 2]
+        eps = torch.randn_like(mean)
+        action = torch.tanh(mean + eps * log_std.exp())
+        log_prob = (-0.5 * eps.pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1, keepdim=True)
+        log_prob = log_prob - torch.log(F.relu(1 - action.pow(2)) + 1e-6).sum(-1, keepdim=True)
+        return action, -log_prob * self.act_dim
+
+    def Q(self, z, action, weights, return_type: str, target: bool = False, detach: bool = False):
+        """return_type 'all': logits [num_q, ..., bins]; 'min'/'avg' over two random heads: [..., 1]."""
+        x = torch.cat([z, action], -1)
+        lead = x.shape[:-1]
+        mlp, key = (self.target_qs, "target_qs") if target else (self.qs, "qs")
+        out = mlp(x.reshape(-1, x.shape[-1]), weights[key], detach)
+        out = out.view(self.num_q, *lead, -1)
+        if return_type == "all":
+            return out
+        heads = torch.randperm(self.num_q, device=out.device)[:2]
+        q1, q2 = two_hot_inv(out[heads], self.args).unbind(0)
+        return torch.min(q1, q2) if return_type == "min" else (q1 + q2) / 2
+
+
+# ---------------------------------------------------------------------------------------------
+# FiLM: h = LN(x) (1 + gamma) + beta on every hidden (LayerNorm'd) layer; one flat vector phi
+# ---------------------------------------------------------------------------------------------
+def film_layout(model: WorldModel) -> tuple[list[tuple], int, int]:
+    """[(module, layer, gamma/beta shape, offset)], #world-model params, #policy params.
+
+    World-model slice first, policy slice after it, so phi[:n_wm] and phi[n_wm:] are the two."""
+    layout, offset, sizes = [], 0, []
+    for group in (model.WORLD_MODEL_MODULES, ("policy",)):
+        start = offset
+        for name in group:
+            mlp = getattr(model, name)
+            for layer in range(mlp.num_normed):
+                shape = mlp.norm_weights[layer].shape  # one scale and one shift per output feature
+                layout.append((name, layer, shape, offset))
+                offset += 2 * math.prod(shape)
+        sizes.append(offset - start)
+    return layout, sizes[0], sizes[1]
+
+
+def adapted_weights(model: WorldModel, phi, layout) -> dict:
+    """Fold FiLM phi into the base LayerNorm affine: w' = w (1 + gamma), b' = b (1 + gamma) + beta.
+    phi = 0 is the identity. The target critic gets the same FiLM on its own (EMA) LayerNorm,
+    detached: it is regenerated on every call, never EMA'd."""
+    weights = model.base_weights()
+    for name, layer, shape, offset in layout:
+        mid = offset + math.prod(shape)
+        gamma, beta = phi[offset:mid].view(shape), phi[mid : mid + math.prod(shape)].view(shape)
+        _, norm_weights, norm_biases = weights[name]
+        norm_weights[layer], norm_biases[layer] = norm_weights[layer] * (1 + gamma), norm_biases[layer] * (1 + gamma) + beta
+        if name == "qs":
+            _, norm_weights, norm_biases = weights["target_qs"]
+            gamma, beta = gamma.detach(), beta.detach()
+            norm_weights[layer], norm_biases[layer] = norm_weights[layer] * (1 + gamma), norm_biases[layer] * (1 + gamma) + beta
+    return weights
+
+
+# ---------------------------------------------------------------------------------------------
+# Hypernetwork: context transitions -> FiLM parameters phi (paper Fig. "hypernet-forward")
+# ---------------------------------------------------------------------------------------------
+def hidden_mlp(d_in: int, d_hidden: int, d_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(d_in, d_hidden), nn.LayerNorm(d_hidden), nn.Mish(), nn.Linear(d_hidden, d_out))
+
+
+class ContextEncoder(nn.Module):
+    """h_emb per transition, mean pool (order-free), h_con -> context embedding u_con."""
+
+    def __init__(self, transition_dim: int, args: Args):
+        super().__init__()
+        self.embed = nn.Sequential(hidden_mlp(transition_dim, args.embed_hidden, args.embed_hidden), nn.Mish())
+        self.context = hidden_mlp(args.embed_hidden, args.embed_hidden, args.context_dim)
+
+    def forward(self, transitions):  # [N, transition_dim] -> [context_dim]
+        return self.context(self.embed(transitions).mean(0))
+
+
+class Hypernet(nn.Module):
+    """phi = phi_0 + concat_k h_gen([u_con, u_k]) cut to N_adapt, generated in chunks of 64."""
+
+    def __init__(self, transition_dim: int, template: torch.Tensor, args: Args):
+        super().__init__()
+        self.num_params = template.numel()
+        num_chunks = math.ceil(self.num_params / args.chunk_size)
+        self.encoder = ContextEncoder(transition_dim, args)
+        self.chunk_embeddings = nn.Parameter(torch.randn(num_chunks, args.chunk_embed_dim))
+        self.generator = nn.Sequential(
+            hidden_mlp(args.context_dim + args.chunk_embed_dim, args.generator_hidden, args.generator_hidden),
+            nn.LayerNorm(args.generator_hidden), nn.Mish(), nn.Linear(args.generator_hidden, args.chunk_size),
+        )
+        nn.init.zeros_(self.generator[-1].weight)  # delta phi = 0 at init: adapters start as the template
+        nn.init.zeros_(self.generator[-1].bias)
+        self.template = nn.Parameter(template.clone())
+
+    def forward(self, transitions):
+        u_con = self.encoder(transitions)
+        chunk_input = torch.cat([u_con.expand(len(self.chunk_embeddings), -1), self.chunk_embeddings], -1)
+        return self.template + self.generator(chunk_input).flatten()[: self.num_params]
+
+
+# ---------------------------------------------------------------------------------------------
+# MPPI planner (TD-MPC2), batched over all samples
+# ---------------------------------------------------------------------------------------------
+@torch.no_grad()
+def estimate_value(model: WorldModel, weights, z, actions, discount: float, args: Args):
+    """Discounted predicted rewards over the horizon plus the bootstrapped Q: [num_samples, 1]."""
+    value, gamma = 0.0, 1.0
+    for t in range(args.horizon):
+        value = value + gamma * two_hot_inv(model.reward_logits(z, actions[t], weights), args)
+        z = model.next(z, actions[t], weights)
+        gamma *= discount
+    return value + gamma * model.Q(z, model.pi(z, weights)[0], weights, "avg")
+
+
+@torch.no_grad()
+def plan(model: WorldModel, weights, obs, prev_mean, discount: float, args: Args, explore: bool):
+    """One MPPI planner call -> (action [act_dim], mean [horizon, act_dim] to warm-start the next)."""
+    device, horizon, act_dim = obs.device, args.horizon, model.act_dim
+    z = model.encode(obs.unsqueeze(0), weights)
+    actions = torch.empty(horizon, args.num_samples, act_dim, device=device)
+    z_pi = z.expand(args.num_pi_trajs, -1)
+    for t in range(horizon):  # policy-seeded trajectories
+        actions[t, : args.num_pi_trajs] = model.pi(z_pi, weights)[0]
+        if t < horizon - 1:
+            z_pi = model.next(z_pi, actions[t, : args.num_pi_trajs], weights)
+    z = z.expand(args.num_samples, -1)
+    mean = torch.zeros(horizon, act_dim, device=device)
+    if prev_mean is not None:
+        mean[:-1] = prev_mean[1:]
+    std = torch.full((horizon, act_dim), args.max_std, device=device)
+    num_random = args.num_samples - args.num_pi_trajs
+    for _ in range(args.iterations):
+        noise = torch.randn(horizon, num_random, act_dim, device=device)
+        actions[:, args.num_pi_trajs :] = (mean.unsqueeze(1) + std.unsqueeze(1) * noise).clamp(-1, 1)
+        value = estimate_value(model, weights, z, actions, discount, args).nan_to_num(0).squeeze(1)
+        elite_value, elite_idxs = torch.topk(value, args.num_elites)
+        elite_actions = actions[:, elite_idxs]
+        score = torch.softmax(args.temperature * elite_value, 0)
+        mean = (score.view(1, -1, 1) * elite_actions).sum(1)
+        std = (score.view(1, -1, 1) * (elite_actions - mean.unsqueeze(1)).pow(2)).sum(1).sqrt().clamp(args.min_std, args.max_std)
+    action = elite_actions[0, torch.multinomial(score, 1)[0]]
+    if explore:
+        action = action + std[0] * torch.randn(act_dim, device=device)
+    return action.clamp(-1, 1), mean
+
+
+# ---------------------------------------------------------------------------------------------
+# Buffers: replay of planner episodes and context of pi_con episodes, one slice per environment
+# ---------------------------------------------------------------------------------------------
+class ReplayBuffer:
+    """Flat transition storage for all environments; samples (horizon+1)-step windows that stay
+    inside one episode of one environment (episodes are stored contiguously)."""
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, n_envs: int, horizon: int, device):
+        self.horizon, self.device, self.size, self.episode_start = horizon, device, 0, 0
+        self.obs = torch.empty(capacity, obs_dim, device=device)
+        self.next_obs = torch.empty(capacity, obs_dim, device=device)
+        self.action = torch.empty(capacity, act_dim, device=device)
+        self.reward = torch.empty(capacity, 1, device=device)
+        self.starts = [torch.empty(0, dtype=torch.long) for _ in range(n_envs)]  # valid window starts per env
+        self.pending = [[] for _ in range(n_envs)]
+
+    def add(self, env_id: int, obs, action, reward: float, next_obs, first: bool):
+        if self.size == len(self.obs):
+            raise RuntimeError("replay buffer full: capacity is total_timesteps plus the prefill")
+        pos = self.size
+        self.obs[pos] = torch.as_tensor(obs, device=self.device)
+        self.next_obs[pos] = torch.as_tensor(next_obs, device=self.device)
+        self.action[pos] = torch.as_tensor(action, device=self.device)
+        self.reward[pos] = reward
+        self.size += 1
+        if first:
+            self.episode_start = pos
+        if pos - self.episode_start >= self.horizon - 1:
+            self.pending[env_id].append(pos - self.horizon + 1)
+
+    def num_starts(self, env_id: int) -> int:
+        return len(self.starts[env_id]) + len(self.pending[env_id])
+
+    def sample(self, env_id: int, batch_size: int):
+        """-> obs [H+1, B, obs_dim], action [H, B, act_dim], reward [H, B, 1]."""
+        if self.pending[env_id]:
+            self.starts[env_id] = torch.cat([self.starts[env_id], torch.tensor(self.pending[env_id])])
+            self.pending[env_id] = []
+        starts = self.starts[env_id]
+        idx = starts[torch.randint(len(starts), (batch_size,))].to(self.device)
+        steps = idx.unsqueeze(0) + torch.arange(self.horizon, device=self.device).unsqueeze(1)  # [H, B]
+        obs = torch.cat([self.obs[idx].unsqueeze(0), self.next_obs[steps]], 0)
+        return obs, self.action[steps], self.reward[steps]
+
+    def state_dict(self) -> dict:
+        for env_id in range(len(self.starts)):
+            if self.pending[env_id]:
+                self.starts[env_id] = torch.cat([self.starts[env_id], torch.tensor(self.pending[env_id])])
+                self.pending[env_id] = []
+        n = self.size
+        return {"obs": self.obs[:n].cpu(), "next_obs": self.next_obs[:n].cpu(), "action": self.action[:n].cpu(),
+                "reward": self.reward[:n].cpu(), "starts": self.starts, "size": n}
+
+    def load_state_dict(self, state: dict):
+        n = self.size = state["size"]
+        for key in ("obs", "next_obs", "action", "reward"):
+            getattr(self, key)[:n] = state[key].to(self.device)
+        self.starts = state["starts"]
+        self.episode_start = n  # the interrupted episode is dropped; the next one starts fresh
+
+
+def context_tensor(context: dict, device) -> torch.Tensor:
+    """pi_con transitions as hypernet input rows (s, a, r, s')."""
+    parts = (context["obs"], context["action"], context["reward"][:, None], context["next_obs"])
+    return torch.as_tensor(np.concatenate(parts, 1), dtype=torch.float32, device=device)
+
+
+def sample_context(contexts: list, env_id: int, batch_size: int) -> torch.Tensor:
+    rows = contexts[env_id]
+    return rows[torch.randint(len(rows), (batch_size,), device=rows.device)]
+
+
+# ---------------------------------------------------------------------------------------------
+# Update (paper Alg. 2 TDMPC2Update): phase 1 world model + hypernet, phase 2 policy + hypernet
+# ---------------------------------------------------------------------------------------------
+def world_model_loss(model: WorldModel, weights, obs, action, reward, discount: float, args: Args):
+    """TD-MPC2 world-model loss -> (loss, latents [H+1, B, latent], info)."""
+    with torch.no_grad():
+        next_z = model.encode(obs[1:], weights)
+        td_target = reward + discount * model.Q(next_z, model.pi(next_z, weights)[0], weights, "min", target=True)
+    z = model.encode(obs[0], weights)
+    zs, consistency = [z], 0.0
+    for t in range(args.horizon):
+        z = model.next(z, action[t], weights)
+        consistency = consistency + args.rho**t * F.mse_loss(z, next_z[t])
+        zs.append(z)
+    zs = torch.stack(zs)
+    rho = args.rho ** torch.arange(args.horizon, device=obs.device, dtype=torch.float32)
+    reward_ce = soft_ce(model.reward_logits(zs[:-1], action, weights), reward, args).mean((1, 2))
+    q_logits = model.Q(zs[:-1], action, weights, "all")  # [num_q, H, B, bins]
+    value_ce = soft_ce(q_logits, td_target.unsqueeze(0).expand(model.num_q, -1, -1, -1), args).mean((2, 3)).sum(0)
+    consistency = consistency / args.horizon
+    reward_loss = (reward_ce * rho).mean()
+    value_loss = (value_ce * rho).mean() / model.num_q
+    loss = args.consistency_coef * consistency + args.reward_coef * reward_loss + args.value_coef * value_loss
+    return loss, zs, {"consistency_loss": consistency.detach(), "reward_loss": reward_loss.detach(), "value_loss": value_loss.detach()}
+
+
+def policy_loss(model: WorldModel, weights, zs, scale: RunningScale, args: Args):
+    """Maximise scaled Q plus entropy on detached latents; Q's weights are detached."""
+    action, scaled_entropy = model.pi(zs, weights)
+    q = model.Q(zs, action, weights, "avg", detach=True)
+    scale.update(q[0])
+    rho = args.rho ** torch.arange(len(q), device=q.device, dtype=torch.float32)
+    return (-(args.entropy_coef * scaled_entropy + q / scale.value).mean((1, 2)) * rho).mean()
+
+
+def update(model, hypernet, optimizers, scale, layout, n_wm, obs, action, reward, context, discount, args: Args) -> dict:
+    wm_optimizer, pi_optimizer, hyper_optimizer = optimizers
+    model.train()
+    # phase 1: world-model base slice and hypernet on the world-model loss + adapter penalty
+    phi = hypernet(context)
+    weights = adapted_weights(model, phi, layout)
+    wm_loss, zs, info = world_model_loss(model, weights, obs, action, reward, discount, args)
+    adapter_penalty = args.adapter_l2 * phi[:n_wm].pow(2).sum()
+    wm_optimizer.zero_grad(set_to_none=True)
+    hyper_optimizer.zero_grad(set_to_none=True)
+    (wm_loss + adapter_penalty).backward()
+    wm_params = [p for g in wm_optimizer.param_groups for p in g["params"]]
+    grad_norm = nn.utils.clip_grad_norm_(wm_params + list(hypernet.parameters()), args.grad_clip_norm)
+    wm_optimizer.step()
+    hyper_optimizer.step()
+    # phase 2: regenerate the policy adapter with the updated hypernet; policy slice and hypernet
+    phi_pi = hypernet(context)[n_wm:]
+    weights = adapted_weights(model, torch.cat([phi[:n_wm].detach(), phi_pi]), layout)
+    pi_loss = policy_loss(model, weights, zs.detach(), scale, args) + args.adapter_l2 * phi_pi.pow(2).sum()
+    pi_optimizer.zero_grad(set_to_none=True)
+    hyper_optimizer.zero_grad(set_to_none=True)
+    pi_loss.backward()
+    nn.utils.clip_grad_norm_(list(model.policy.parameters()) + list(hypernet.parameters()), args.grad_clip_norm)
+    pi_optimizer.step()
+    hyper_optimizer.step()
+    # target critic: EMA of the base weights only
+    with torch.no_grad():
+        torch._foreach_lerp_(list(model.target_qs.parameters()), list(model.qs.parameters()), args.tau)
+    model.eval()
+    info.update(wm_loss=wm_loss.detach(), pi_loss=pi_loss.detach(), grad_norm=grad_norm, adapter_norm=phi.detach().norm())
+    return info
+
+
+def make_optimizers(model: WorldModel, hypernet: nn.Module, args: Args):
+    wm_optimizer = torch.optim.Adam([
+        {"params": model.encoder.parameters(), "lr": args.learning_rate * args.encoder_lr_scale},
+        {"params": [*model.dynamics.parameters(), *model.reward.parameters(), *model.qs.parameters()]},
+    ], lr=args.learning_rate)
+    pi_optimizer = torch.optim.Adam(model.policy.parameters(), lr=args.learning_rate, eps=1e-5)
+    hyper_optimizer = torch.optim.Adam(hypernet.parameters(), lr=args.hypernet_lr)
+    return wm_optimizer, pi_optimizer, hyper_optimizer
+
+
+# ---------------------------------------------------------------------------------------------
+# Persistence
+# ---------------------------------------------------------------------------------------------
+def save_checkpoint(path, global_step, model, hypernet, optimizers, scale, replay, contexts, args: Args):
+    state = {
+        "global_step": global_step, "args": vars(args), "model": model.state_dict(), "hypernet": hypernet.state_dict(),
+        "optimizers": [opt.state_dict() for opt in optimizers], "scale": scale.value.cpu(),
+        "replay": replay.state_dict() if replay is not None else None, "contexts": [c.cpu() for c in contexts],
+        "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+                "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None},
+    }
+    torch.save(state, path + ".tmp")
+    os.replace(path + ".tmp", path)  # atomic: a kill mid-save never leaves a truncated checkpoint
+
+
+def load_checkpoint(path, model, hypernet, optimizers=None, scale=None, replay=None, restore_rng: bool = False):
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    model.load_state_dict(state["model"])
+    hypernet.load_state_dict(state["hypernet"])
+    if optimizers is not None:
+        for opt, opt_state in zip(optimizers, state["optimizers"]):
+            opt.load_state_dict(opt_state)
+    if scale is not None:
+        scale.value.copy_(state["scale"])
+    if replay is not None and state["replay"] is not None:
+        replay.load_state_dict(state["replay"])
+    if restore_rng:
+        random.setstate(state["rng"]["python"])
+        np.random.set_state(state["rng"]["numpy"])
+        torch.set_rng_state(state["rng"]["torch"])
+        if state["rng"]["cuda"] is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["rng"]["cuda"])
+    return state
+
+
+# ---------------------------------------------------------------------------------------------
+# Evaluation: the shared protocols with CLAW's adapt (one hypernet pass) and act (MPPI)
+# ---------------------------------------------------------------------------------------------
+def evaluate(model, hypernet, layout, discount, writer, device, args: Args) -> dict:
+    model.eval()
+    current = {"weights": model.base_weights(), "mean": None}
+
+    @torch.no_grad()
+    def adapt(context):
+        current["weights"] = adapted_weights(model, hypernet(context_tensor(context, device)), layout)
+
+    def act(obs, first_step):
+        obs = torch.as_tensor(obs, dtype=torch.float32, device=device)
+        action, current["mean"] = plan(model, current["weights"], obs, None if first_step else current["mean"], discount, args, explore=False)
+        return action.cpu().numpy()
+
+    results = {"online": {}, "offline": {}}
+    for env_id in range(num_envs(args.family)):
+        env = make_env(args.family, env_id, seed=args.seed + 10_000 + env_id)
+        context = collect_episodes(env, args.context_episodes, seed=args.seed + 20_000 + env_id)
+        online = online_adaptation(env, context, adapt, act, args.online_eval_steps, seed=args.seed + 30_000 + env_id)
+        for record in online:
+            writer.add_scalar(f"eval/online/env{env_id}/episodic_return", record["return"], record["step"])
+            writer.add_scalar(f"eval/online/env{env_id}/success", record["success"], record["step"])
+        offline = offline_adaptation(env, context, adapt, act, args.eval_episodes, seed=args.seed + 40_000 + env_id)
+        offline_return = float(np.mean([r["return"] for r in offline]))
+        writer.add_scalar(f"eval/offline/env{env_id}/episodic_return", offline_return, 0)
+        writer.add_scalar(f"eval/offline/env{env_id}/success", float(np.mean([r["success"] for r in offline])), 0)
+        results["online"][env_id], results["offline"][env_id] = online, offline
+        print(f"eval env {env_id}: online last-episode return {online[-1]['return'] if online else float('nan'):.1f}, "
+              f"offline return {offline_return:.1f}", flush=True)
+    # family averages: every environment has episodes of equal length, so episode k ends at the same step
+    num_episodes = min(len(r) for r in results["online"].values())
+    for k in range(num_episodes):
+        step = results["online"][0][k]["step"]
+        for key in ("return", "success"):
+            value = np.mean([results["online"][e][k][key] for e in results["online"]])
+            writer.add_scalar(f"eval/online/{'episodic_return' if key == 'return' else key}", value, step)
+    offline_means = [np.mean([r["return"] for r in recs]) for recs in results["offline"].values()]
+    mean, ci = mean_ci(offline_means)
+    writer.add_scalar("eval/offline/episodic_return", mean, 0)
+    writer.add_scalar("eval/offline/success", np.mean([r["success"] for recs in results["offline"].values() for r in recs]), 0)
+    print(f"eval offline: return {mean:.1f} +- {ci:.1f} (95% t-CI across environments)", flush=True)
+    writer.flush()
+    return results
+
+
+# ---------------------------------------------------------------------------------------------
+# Main: set-up, context collection, prefill, burst, online pretraining loop, evaluation
+# ---------------------------------------------------------------------------------------------
+def main(args: Args):
+    validate_args(args)
+    if args.eval_only:  # architecture and family come from the checkpoint
+        saved = torch.load(args.checkpoint, map_location="cpu", weights_only=False)["args"]
+        for key in ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim"):
+            setattr(args, key, saved[key])
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+
+    n_envs, ep_len = num_envs(args.family), episode_length(args.family)
+    envs = [make_env(args.family, env_id, seed=args.seed + env_id) for env_id in range(n_envs)]
+    for env_id, env in enumerate(envs):
+        env.action_space.seed(args.seed + env_id)
+    obs_dim, act_dim = envs[0].observation_space.shape[0], envs[0].action_space.shape[0]
+    total_timesteps = args.total_timesteps or DEFAULT_TOTAL_TIMESTEPS[args.family]
+    seed_steps = args.seed_steps if args.seed_steps is not None else max(1000, 5 * ep_len)
+    discount = args.discount if args.discount is not None else min(max((ep_len / 5 - 1) / (ep_len / 5), 0.95), 0.995)
+
+    model = WorldModel(obs_dim, act_dim, args.model_size, args).to(device)
+    layout, n_wm, n_pi = film_layout(model)
+    hypernet = Hypernet(2 * obs_dim + act_dim + 1, torch.zeros(n_wm + n_pi), args).to(device)  # template 0: identity
+    print(f"base parameters: {sum(p.numel() for p in model.base_parameters())}")
+    print(f"adapter parameters: {n_wm} (world model) + {n_pi} (policy)")
+    print(f"hypernetwork parameters: {sum(p.numel() for p in hypernet.parameters())}", flush=True)
+    if args.dry_run:
+        return
+
+    if args.resume and args.run_dir is None:  # keep logging into the interrupted run
+        args.run_dir = os.path.dirname(os.path.abspath(args.resume))
+    run_dir = args.run_dir or f"runs/{args.family}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    writer = SummaryWriter(run_dir)
+    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in vars(args).items()))
+    if args.eval_only:
+        load_checkpoint(args.checkpoint, model, hypernet)
+        evaluate(model, hypernet, layout, discount, writer, device, args)
+        writer.close()
+        return
+
+    optimizers = make_optimizers(model, hypernet, args)
+    scale = RunningScale(args.tau, device)
+    replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
+    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
+    global_step = 0
+    if args.resume:
+        state = load_checkpoint(args.resume, model, hypernet, optimizers, scale, replay, restore_rng=True)
+        contexts = [c.to(device) for c in state["contexts"]]
+        global_step = state["global_step"]
+        print(f"resumed from {args.resume} at step {global_step}", flush=True)
+    else:
+        # context buffers: pi_con episodes per environment (paper Alg. 1, lines 1-2)
+        contexts = [context_tensor(collect_episodes(env, args.context_buffer_episodes, seed=args.seed + 100 + j), device)
+                    for j, env in enumerate(envs)]
+        # update buffers: random-action prefill, whole episodes, every environment
+        episodes_per_env = max(1, math.ceil(seed_steps / (n_envs * ep_len)))
+        for env_id, env in enumerate(envs):
+            for _ in range(episodes_per_env):
+                obs, _ = env.reset()
+                done, first = False, True
+                while not done:
+                    action = env.action_space.sample()
+                    next_obs, reward, terminated, truncated, _ = env.step(action)
+                    replay.add(env_id, obs, action, reward, next_obs, first)
+                    obs, first, done, global_step = next_obs, False, terminated or truncated, global_step + 1
+        burst = args.burst_updates
+        print(f"prefilled {global_step} steps; {burst} burst updates", flush=True)
+        for _ in range(burst):
+            k = random.randrange(n_envs)
+            update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(k, args.batch_size),
+                   sample_context(contexts, k, args.context_batch_size), discount, args)
+
+    rollout_env = random.randrange(n_envs)
+    obs, _ = envs[rollout_env].reset()
+    first, episode_return, prev_mean = True, 0.0, None
+    start_time, start_step = time.time(), global_step
+    while global_step < total_timesteps:
+        # update the base and hypernet on a training environment sampled per step
+        k = random.randrange(n_envs)
+        info = update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(k, args.batch_size),
+                      sample_context(contexts, k, args.context_batch_size), discount, args)
+        # plan and act in the rollout environment with its freshly generated adapters
+        with torch.no_grad():
+            weights = adapted_weights(model, hypernet(sample_context(contexts, rollout_env, args.context_batch_size)), layout)
+        action, prev_mean = plan(model, weights, torch.as_tensor(obs, dtype=torch.float32, device=device),
+                                 None if first else prev_mean, discount, args, explore=True)
+        action = action.cpu().numpy()
+        next_obs, reward, terminated, truncated, step_info = envs[rollout_env].step(action)
+        replay.add(rollout_env, obs, action, reward, next_obs, first)
+        episode_return += float(reward)
+        obs, first, global_step = next_obs, False, global_step + 1
+        if terminated or truncated:
+            writer.add_scalar("charts/episodic_return", episode_return, global_step)
+            writer.add_scalar("charts/episodic_success", float(step_info.get("success", 0.0)), global_step)
+            writer.add_scalar(f"charts/env{rollout_env}/episodic_return", episode_return, global_step)
+            rollout_env = random.randrange(n_envs)
+            obs, _ = envs[rollout_env].reset()
+            first, episode_return = True, 0.0
+        if global_step % args.log_every == 0 or global_step == total_timesteps:
+            sps = int((global_step - start_step) / (time.time() - start_time))
+            for key, value in info.items():
+                writer.add_scalar(f"losses/{key}", value.item(), global_step)
+            writer.add_scalar("charts/q_scale", float(scale.value), global_step)
+            writer.add_scalar("charts/SPS", sps, global_step)
+            print(f"step {global_step}/{total_timesteps} | wm_loss {float(info['wm_loss']):.3f} | "
+                  f"adapter_norm {float(info['adapter_norm']):.3f} | SPS {sps}", flush=True)
+            writer.flush()
+        if global_step % args.checkpoint_every == 0:
+            save_checkpoint(checkpoint_path, global_step, model, hypernet, optimizers, scale, replay, contexts, args)
+    save_checkpoint(checkpoint_path, global_step, model, hypernet, optimizers, scale, replay, contexts, args)
+    print(f"saved {checkpoint_path}", flush=True)
+    if args.evaluate_after_training:
+        evaluate(model, hypernet, layout, discount, writer, device, args)
+    writer.close()
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
