@@ -17,14 +17,6 @@ from common.envs import env_param, make_env
 SCRIPTS = {"dr": dr, "st": st, "oracle": oracle}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Size-I ops are per-op overhead; on a shared 2-core machine a second torch thread only spins."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
 
 def tiny_args(script, tmp_path, **overrides):
     """Size I on reach (6 envs, 100-step episodes), tiny planner and batch, a two-point Exp 2 sweep."""

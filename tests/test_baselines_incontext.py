@@ -9,20 +9,12 @@ import torch.nn.functional as F
 import concat_tdmpc2 as concat
 import film_tdmpc2 as film
 import posthoc_tdmpc2 as posthoc
+from test_claw import synthetic_batch
 
 TINY = dict(model_size="I", seed_steps=100, burst_updates=5, batch_size=16, num_samples=32, num_elites=8,
             num_pi_trajs=4, iterations=2, context_buffer_episodes=1, context_batch_size=32, context_episodes=1,
             online_eval_steps=100, eval_episodes=1, log_every=20, checkpoint_every=10_000, cuda=False,
             evaluate_after_training=False)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny networks on a shared 2-core machine: intra-op threads only add contention (up to 100x)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def tiny_args(module, tmp_path, **overrides):
@@ -32,15 +24,6 @@ def tiny_args(module, tmp_path, **overrides):
         base.update(family="cheetah_walker", rank=2, total_timesteps=1100, log_every=25)
     base.update(overrides)
     return module.Args(**base)
-
-
-def synthetic_batch(obs_dim=24, act_dim=6, batch=32, horizon=3, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    obs = torch.randn(horizon + 1, batch, obs_dim, generator=g)
-    action = torch.rand(horizon, batch, act_dim, generator=g) * 2 - 1
-    reward = torch.rand(horizon, batch, 1, generator=g)
-    context = torch.randn(64, 2 * obs_dim + act_dim + 1, generator=g)
-    return obs, action, reward, context
 
 
 def scalar_tags(run_dir) -> set:
