@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from benchmarks import aggregate, experiments, figures
+from benchmarks import aggregate, experiments, figures, inspect_adapters
 from common.evaluation import mean_ci
 
 
@@ -68,7 +68,7 @@ def test_grouping_reports_incomplete_runs(tmp_path):
     assert "Runs not aggregated" in aggregate.markdown(rows, problems)
 
 
-def test_end_to_end_sweep_of_two_tiny_runs(tmp_path):
+def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     runs = [r for r in experiments.plan_runs(["exp1"], "smoke") if r.method == "claw"]
     assert len(runs) == 2
     assert experiments.launch(runs, str(tmp_path), workers=2, dry_run=False) == 0
@@ -78,8 +78,13 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path):
     assert "| claw | reach | I | 2 | online_return |" in summary and "| offline_return | 0 | 2 |" in summary
     rows, curves, _ = aggregate.summarize(aggregate.load_runs(str(tmp_path)))
     assert figures.figure_exp1(rows, curves, str(tmp_path)) == "exp1: no DR/ST/Oracle runs"
+    # the identifiability diagnostic reads a sweep's CLAW checkpoint
+    inspect_adapters.main([str(tmp_path / runs[0].name / "checkpoint.pt"), "--episodes", "1"])
     # the launcher skips finished runs on a second call
     assert experiments.launch(runs, str(tmp_path), workers=1, dry_run=False) == 0
+    out = capsys.readouterr().out
+    assert "delta phi (world model)" in out and "gradient norms of one world-model loss" in out
+    assert f"skip (done)  {runs[0].name}" in out
     # a CLAW-only sweep still draws its curves
     fig_rows = [dict(r, method="dr") for r in curves]
     assert figures.figure_exp1(rows, curves + fig_rows, str(tmp_path)) is None
