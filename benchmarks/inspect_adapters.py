@@ -48,7 +48,9 @@ def main(argv=None):
                 adapters[env_id, draw] = hypernet(rows)[:n_wm] - hypernet.template[:n_wm]
     n = num_envs(args.family)
     print(f"{cli.checkpoint}: family {args.family}, size {args.model_size}, rank {args.rank}")
-    print(f"||template (world model)|| = {hypernet.template[:n_wm].norm():.4f}")
+    phi_norms = torch.stack([(adapters[e, 0] + hypernet.template[:n_wm]).norm() for e in range(n)])
+    print(f"||template (world model)|| = {hypernet.template[:n_wm].norm():.4f}, "
+          f"||phi (world model)|| = {phi_norms.mean():.4f} (template + generated delta, mean over environments)")
     for name, values in (("u_con", embeddings), ("delta phi (world model)", adapters)):
         same = torch.stack([(values[e, 0] - values[e, 1]).norm() for e in range(n)]).mean()
         other = torch.stack([(values[a, 0] - values[b, 0]).norm() for a, b in itertools.combinations(range(n), 2)]).mean()
