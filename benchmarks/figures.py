@@ -2,8 +2,8 @@
 
     python benchmarks/figures.py runs/sweeps/cpu [--out DIR]
 
-exp1.png  return (success for Reach/Push) vs test-time steps per family: CLAW, DR, ST, Oracle
-exp2.png  return vs offline gradient steps (symlog x); CLAW's single pass as a horizontal band
+exp1.png  return (and success for Reach/Push) vs test-time steps per family: CLAW, DR, ST, Oracle
+exp2.png  return (and success) vs offline gradient steps (symlog x); CLAW's pass as a horizontal band
 exp3.png  Cheetah/Walker return vs base parameter count (log x) for CLAW, FiLM, Concat; ratio to CLAW
 exp4.png  return vs LoRA rank, and vs adapter size as % of the world model, FiLM/Concat for reference
 exp5.png  Cheetah return: CLAW (joint) vs post-hoc hypernet
@@ -49,21 +49,35 @@ def select(rows, **match):
     return [r for r in rows if all(r[k] == v for k, v in match.items())]
 
 
+def panels(families, prefix):
+    """(family, metric, y label) per subplot: return for every family, plus success for Meta-World
+    (the paper reports success there; at small budgets return is the less sparse signal)."""
+    grid = [[(f, f"{prefix}_return", "episode return") for f in families]]
+    if any(f in METAWORLD for f in families):
+        grid.append([(f, f"{prefix}_success", "success") if f in METAWORLD else None for f in families])
+    return grid
+
+
 def figure_exp1(rows, curves, out) -> str | None:
     families = sorted({c["family"] for c in curves if c["method"] in ("dr", "st", "oracle")})
     if not families:
         return "exp1: no DR/ST/Oracle runs"
-    fig, axes = plt.subplots(1, len(families), figsize=(4.5 * len(families), 3.5), squeeze=False)
-    for ax, family in zip(axes[0], families):
-        metric = "online_success" if family in METAWORLD else "online_return"
-        for method in ("claw", "dr", "st", "oracle"):
-            points = select(curves, family=family, method=method, metric=metric)
-            if points:
-                x, y = [p["step"] for p in points], [p["mean"] for p in points]
-                ci = [_ci(p["ci95"]) for p in points]
-                ax.plot(x, y, color=COLORS[method], label=LABELS[method])
-                ax.fill_between(x, [a - b for a, b in zip(y, ci)], [a + b for a, b in zip(y, ci)], color=COLORS[method], alpha=0.2)
-        ax.set(title=family, xlabel="test-time environment steps", ylabel="success" if metric == "online_success" else "episode return")
+    grid = panels(families, "online")
+    fig, axes = plt.subplots(len(grid), len(families), figsize=(4.5 * len(families), 3.5 * len(grid)), squeeze=False)
+    for ax_row, panel_row in zip(axes, grid):
+        for ax, panel in zip(ax_row, panel_row):
+            if panel is None:
+                ax.axis("off")
+                continue
+            family, metric, label = panel
+            for method in ("claw", "dr", "st", "oracle"):
+                points = select(curves, family=family, method=method, metric=metric)
+                if points:
+                    x, y = [p["step"] for p in points], [p["mean"] for p in points]
+                    ci = [_ci(p["ci95"]) for p in points]
+                    ax.plot(x, y, color=COLORS[method], label=LABELS[method])
+                    ax.fill_between(x, [a - b for a, b in zip(y, ci)], [a + b for a, b in zip(y, ci)], color=COLORS[method], alpha=0.15)
+            ax.set(title=family, xlabel="test-time environment steps", ylabel=label)
     axes[0][0].legend()
     fig.tight_layout()
     fig.savefig(os.path.join(out, "exp1.png"), dpi=120)
@@ -74,19 +88,27 @@ def figure_exp2(rows, curves, out) -> str | None:
     families = sorted({r["family"] for r in rows if r["metric"] == "offline_return" and r["method"] in ("dr", "st", "oracle")})
     if not families:
         return "exp2: no DR/ST/Oracle offline sweeps"
-    fig, axes = plt.subplots(1, len(families), figsize=(4.5 * len(families), 3.5), squeeze=False)
-    for ax, family in zip(axes[0], families):
-        metric = "offline_success" if family in METAWORLD else "offline_return"
-        for method in ("dr", "st", "oracle"):
-            points = select(rows, family=family, method=method, metric=metric)
-            if points:
-                ax.errorbar([p["x"] for p in points], [p["mean"] for p in points], yerr=[_ci(p["ci95"]) for p in points],
-                            color=COLORS[method], label=LABELS[method], marker="o", capsize=3)
-        for p in select(rows, family=family, method="claw", metric=metric):
-            ax.axhline(p["mean"], color=COLORS["claw"], label="CLAW (1 hypernet pass)")
-            ax.axhspan(p["mean"] - _ci(p["ci95"]), p["mean"] + _ci(p["ci95"]), color=COLORS["claw"], alpha=0.15)
-        ax.set_xscale("symlog", linthresh=1)
-        ax.set(title=family, xlabel="offline gradient steps", ylabel="success" if metric == "offline_success" else "episode return")
+    grid = panels(families, "offline")
+    fig, axes = plt.subplots(len(grid), len(families), figsize=(4.5 * len(families), 3.5 * len(grid)), squeeze=False)
+    for ax_row, panel_row in zip(axes, grid):
+        for ax, panel in zip(ax_row, panel_row):
+            if panel is None:
+                ax.axis("off")
+                continue
+            family, metric, label = panel
+            steps = [0]
+            for method in ("dr", "st", "oracle"):
+                points = select(rows, family=family, method=method, metric=metric)
+                if points:
+                    steps += [p["x"] for p in points]
+                    ax.errorbar([p["x"] for p in points], [p["mean"] for p in points], yerr=[_ci(p["ci95"]) for p in points],
+                                color=COLORS[method], label=LABELS[method], marker="o", capsize=3)
+            for p in select(rows, family=family, method="claw", metric=metric):
+                ax.axhline(p["mean"], color=COLORS["claw"], label="CLAW (1 hypernet pass)")
+                ax.axhspan(p["mean"] - _ci(p["ci95"]), p["mean"] + _ci(p["ci95"]), color=COLORS["claw"], alpha=0.15)
+            ax.set_xscale("symlog", linthresh=1)
+            ax.set_xlim(0, max(steps) * 1.5 + 1)
+            ax.set(title=family, xlabel="offline gradient steps", ylabel=label)
     axes[0][0].legend()
     fig.tight_layout()
     fig.savefig(os.path.join(out, "exp2.png"), dpi=120)
