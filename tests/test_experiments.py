@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from benchmarks import aggregate, experiments, figures, inspect_adapters
+from benchmarks import aggregate, context_identifiability, experiments, figures, inspect_adapters
 from common.evaluation import mean_ci
 
 
@@ -89,3 +89,16 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     fig_rows = [dict(r, method="dr") for r in curves]
     assert figures.figure_exp1(rows, curves + fig_rows, str(tmp_path)) is None
     assert os.path.getsize(tmp_path / "exp1.png") > 1000
+
+
+def test_context_identifiability_statistics_on_synthetic_contexts():
+    rng = np.random.default_rng(0)
+    obs = rng.uniform(-1, 1, (200, 39))
+    reward = 2.0 + obs[:, 0] - 3.0 * obs[:, 2]  # linear in the hand position (obs[:, :3])
+    mean, slope = context_identifiability.context_features({"reward": reward, "next_obs": obs}, "reach")
+    assert mean == pytest.approx([reward.mean()])
+    assert slope == pytest.approx([1.0, 0.0, -3.0], abs=1e-9)
+    labels = np.repeat(np.arange(3), 4)
+    separable = labels[:, None] * 10.0 + rng.normal(0, 0.1, (12, 1))
+    assert context_identifiability.nearest_centroid_accuracy(separable, labels) == 12
+    assert context_identifiability.nearest_centroid_accuracy(rng.normal(size=(12, 1)), labels) < 12

@@ -1,0 +1,82 @@
+"""Does a pi_con context identify the Meta-World goal, and through which statistic?
+
+The Reach/Push goal is hidden from the observation, so an adaptation method can only learn it
+from the context's rewards. This script draws several 3-episode random-policy contexts per goal
+(as at test time) and classifies the goal three ways:
+  mean reward          leave-one-out nearest centroid on the context's mean reward
+  + reward~position    the same plus the least-squares slope of reward on the tracked position
+  distance form        the candidate goal whose distance to the tracked position best
+                       rank-correlates (negatively) with reward: an upper bound that knows the
+                       reward falls with that distance
+The tracked position is the hand for Reach and the object for Push.
+
+Usage: python benchmarks/context_identifiability.py [--family reach] [--draws 6]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+os.environ.setdefault("MUJOCO_GL", "disable")
+
+import numpy as np  # noqa: E402
+import scipy.stats  # noqa: E402
+
+from common.context import collect_episodes  # noqa: E402
+from common.envs import env_param, make_env, num_envs  # noqa: E402
+
+TRACKED_SLICE = {"reach": slice(0, 3), "push": slice(4, 7)}  # hand xyz; object xyz
+
+
+def context_features(context: dict, family: str) -> tuple[np.ndarray, np.ndarray]:
+    """(mean reward, slope of reward on the tracked position) of one context."""
+    reward, position = context["reward"], context["next_obs"][:, TRACKED_SLICE[family]]
+    design = np.c_[np.ones(len(reward)), position - position.mean(0)]
+    slope = np.linalg.lstsq(design, reward, rcond=None)[0][1:]
+    return np.array([reward.mean()]), slope
+
+
+def nearest_centroid_accuracy(features: np.ndarray, labels: np.ndarray) -> int:
+    """Leave-one-out nearest-centroid hits on standardised features."""
+    features = (features - features.mean(0)) / (features.std(0) + 1e-12)
+    hits = 0
+    for i in range(len(features)):
+        others = np.arange(len(features)) != i
+        centroids = np.array([features[others & (labels == g)].mean(0) for g in np.unique(labels)])
+        hits += int(np.argmin(((centroids - features[i]) ** 2).sum(1)) == labels[i])
+    return hits
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--family", choices=sorted(TRACKED_SLICE), default="reach")
+    parser.add_argument("--draws", type=int, default=6, help="contexts per goal")
+    parser.add_argument("--context-episodes", type=int, default=3)
+    opts = parser.parse_args()
+
+    n = num_envs(opts.family)
+    goals = np.array([env_param(opts.family, g) for g in range(n)])
+    labels, means, slopes, distance_hits = [], [], [], 0
+    for g in range(n):
+        env = make_env(opts.family, g, seed=0)
+        for draw in range(opts.draws):
+            context = collect_episodes(env, opts.context_episodes, seed=1000 * g + draw)
+            mean, slope = context_features(context, opts.family)
+            position = context["next_obs"][:, TRACKED_SLICE[opts.family]]
+            scores = [scipy.stats.spearmanr(context["reward"], -np.linalg.norm(position - goal, axis=1))[0] for goal in goals]
+            distance_hits += int(np.nanargmax(scores) == g)
+            labels.append(g), means.append(mean), slopes.append(slope)
+        start = context["obs"][0, TRACKED_SLICE[opts.family]]
+        print(f"goal {g} {goals[g]}: distance from start {np.linalg.norm(goals[g] - start):.3f}, "
+              f"mean reward (last draw) {mean[0]:.3f}, position range {np.ptp(position, 0).round(3)}")
+    labels, total = np.array(labels), n * opts.draws
+    print(f"contexts: {opts.draws} per goal x {n} goals, {opts.context_episodes} pi_con episodes each; chance {total // n}/{total}")
+    print(f"mean reward:          {nearest_centroid_accuracy(np.array(means), labels)}/{total}")
+    print(f"+ reward~position:    {nearest_centroid_accuracy(np.c_[np.array(means), np.array(slopes)], labels)}/{total}")
+    print(f"distance form (bound): {distance_hits}/{total}")
+
+
+if __name__ == "__main__":
+    main()
