@@ -179,8 +179,10 @@ def launch(runs: list[Run], root: str, workers: int, dry_run: bool) -> int:
         pending.append((run, run_dir, command))
     if dry_run or not pending:
         return 0
-    # small networks: one BLAS/OpenMP thread per run, or parallel runs thrash each other's threads
-    env = dict(os.environ, OMP_NUM_THREADS=str(max(1, (os.cpu_count() or 1) // workers)), MUJOCO_GL=os.environ.get("MUJOCO_GL", "disable"))
+    # small networks: cores/workers BLAS/OpenMP threads per run, or parallel runs thrash each
+    # other's threads; an OMP_NUM_THREADS already set (e.g. beside another sweep) wins
+    threads = os.environ.get("OMP_NUM_THREADS") or str(max(1, (os.cpu_count() or 1) // workers))
+    env = dict(os.environ, OMP_NUM_THREADS=threads, MUJOCO_GL=os.environ.get("MUJOCO_GL", "disable"))
     active, failed = [], 0
     while pending or active:
         while pending and len(active) < workers:
