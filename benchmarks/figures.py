@@ -24,6 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from benchmarks.aggregate import load_runs, summarize  # noqa: E402
+from benchmarks.experiments import SIZE_RANKS  # noqa: E402
 
 COLORS = {"claw": "tab:red", "dr": "tab:blue", "st": "tab:green", "oracle": "black", "film": "tab:purple",
           "concat": "tab:orange", "posthoc": "tab:gray"}
@@ -58,11 +59,9 @@ def panels(families, prefix):
     return grid
 
 
-def figure_exp1(rows, curves, out) -> str | None:
-    families = sorted({c["family"] for c in curves if c["method"] in ("dr", "st", "oracle")})
-    if not families:
-        return "exp1: no DR/ST/Oracle runs"
-    grid = panels(families, "online")
+def save_panel_grid(families, prefix, draw, path):
+    """One subplot per `panels` entry; draw(ax, family, metric) fills it; legend on the first."""
+    grid = panels(families, prefix)
     fig, axes = plt.subplots(len(grid), len(families), figsize=(4.5 * len(families), 3.5 * len(grid)), squeeze=False)
     for ax_row, panel_row in zip(axes, grid):
         for ax, panel in zip(ax_row, panel_row):
@@ -70,17 +69,29 @@ def figure_exp1(rows, curves, out) -> str | None:
                 ax.axis("off")
                 continue
             family, metric, label = panel
-            for method in ("claw", "dr", "st", "oracle"):
-                points = select(curves, family=family, method=method, metric=metric)
-                if points:
-                    x, y = [p["step"] for p in points], [p["mean"] for p in points]
-                    ci = [_ci(p["ci95"]) for p in points]
-                    ax.plot(x, y, color=COLORS[method], label=LABELS[method])
-                    ax.fill_between(x, [a - b for a, b in zip(y, ci)], [a + b for a, b in zip(y, ci)], color=COLORS[method], alpha=0.15)
-            ax.set(title=family, xlabel="test-time environment steps", ylabel=label)
+            draw(ax, family, metric)
+            ax.set(title=family, ylabel=label)
     axes[0][0].legend()
     fig.tight_layout()
-    fig.savefig(os.path.join(out, "exp1.png"), dpi=120)
+    fig.savefig(path, dpi=120)
+
+
+def figure_exp1(rows, curves, out) -> str | None:
+    families = sorted({c["family"] for c in curves if c["method"] in ("dr", "st", "oracle")})
+    if not families:
+        return "exp1: no DR/ST/Oracle runs"
+
+    def draw(ax, family, metric):
+        for method in ("claw", "dr", "st", "oracle"):
+            points = select(curves, family=family, method=method, metric=metric)
+            if points:
+                x, y = [p["step"] for p in points], [p["mean"] for p in points]
+                ci = [_ci(p["ci95"]) for p in points]
+                ax.plot(x, y, color=COLORS[method], label=LABELS[method])
+                ax.fill_between(x, [a - b for a, b in zip(y, ci)], [a + b for a, b in zip(y, ci)], color=COLORS[method], alpha=0.15)
+        ax.set_xlabel("test-time environment steps")
+
+    save_panel_grid(families, "online", draw, os.path.join(out, "exp1.png"))
     return None
 
 
@@ -88,37 +99,29 @@ def figure_exp2(rows, curves, out) -> str | None:
     families = sorted({r["family"] for r in rows if r["metric"] == "offline_return" and r["method"] in ("dr", "st", "oracle")})
     if not families:
         return "exp2: no DR/ST/Oracle offline sweeps"
-    grid = panels(families, "offline")
-    fig, axes = plt.subplots(len(grid), len(families), figsize=(4.5 * len(families), 3.5 * len(grid)), squeeze=False)
-    for ax_row, panel_row in zip(axes, grid):
-        for ax, panel in zip(ax_row, panel_row):
-            if panel is None:
-                ax.axis("off")
-                continue
-            family, metric, label = panel
-            steps = [0]
-            for method in ("dr", "st", "oracle"):
-                points = select(rows, family=family, method=method, metric=metric)
-                if points:
-                    steps += [p["x"] for p in points]
-                    ax.errorbar([p["x"] for p in points], [p["mean"] for p in points], yerr=[_ci(p["ci95"]) for p in points],
-                                color=COLORS[method], label=LABELS[method], marker="o", capsize=3)
-            for p in select(rows, family=family, method="claw", metric=metric):
-                ax.axhline(p["mean"], color=COLORS["claw"], label="CLAW (1 hypernet pass)")
-                ax.axhspan(p["mean"] - _ci(p["ci95"]), p["mean"] + _ci(p["ci95"]), color=COLORS["claw"], alpha=0.15)
-            ax.set_xscale("symlog", linthresh=1)
-            ax.set_xlim(0, max(steps) * 1.5 + 1)
-            ax.set(title=family, xlabel="offline gradient steps", ylabel=label)
-    axes[0][0].legend()
-    fig.tight_layout()
-    fig.savefig(os.path.join(out, "exp2.png"), dpi=120)
+
+    def draw(ax, family, metric):
+        steps = [0]
+        for method in ("dr", "st", "oracle"):
+            points = select(rows, family=family, method=method, metric=metric)
+            if points:
+                steps += [p["x"] for p in points]
+                ax.errorbar([p["x"] for p in points], [p["mean"] for p in points], yerr=[_ci(p["ci95"]) for p in points],
+                            color=COLORS[method], label=LABELS[method], marker="o", capsize=3)
+        for p in select(rows, family=family, method="claw", metric=metric):
+            ax.axhline(p["mean"], color=COLORS["claw"], label="CLAW (1 hypernet pass)")
+            ax.axhspan(p["mean"] - _ci(p["ci95"]), p["mean"] + _ci(p["ci95"]), color=COLORS["claw"], alpha=0.15)
+        ax.set_xscale("symlog", linthresh=1)
+        ax.set_xlim(0, max(steps) * 1.5 + 1)
+        ax.set_xlabel("offline gradient steps")
+
+    save_panel_grid(families, "offline", draw, os.path.join(out, "exp2.png"))
     return None
 
 
 def figure_exp3(rows, curves, out) -> str | None:
     cw = [r for r in select(rows, family="cheetah_walker", metric="online_return") if r["method"] in ("claw", "film", "concat")]
-    tied = {"A": 16, "B": 16, "D": 16, "E": 16, "F": 8, "G": 4, "H": 2, "I": 1}
-    cw = [r for r in cw if r["method"] != "claw" or r["rank"] == tied[r["size"]]]
+    cw = [r for r in cw if r["method"] != "claw" or r["rank"] == SIZE_RANKS[r["size"]]]  # Exp 3 ties rank to size
     if len({r["size"] for r in cw}) < 2:
         return "exp3: fewer than two model sizes on cheetah_walker"
     fig, (ax, ax_ratio) = plt.subplots(1, 2, figsize=(9, 3.5))
