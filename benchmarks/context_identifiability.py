@@ -8,6 +8,9 @@ from the context's rewards. This script draws several 3-episode random-policy co
   distance form        the candidate goal whose distance to the tracked position best
                        rank-correlates (negatively) with reward: an upper bound that knows the
                        reward falls with that distance
+  learned encoder      CLAW's own context encoder (h_emb, mean pool, h_con, from
+                       claw_tdmpc2.py) plus a linear head, trained supervised on the goal label
+                       from separate contexts: can the architecture extract the goal at all?
 The tracked position is the hand for Reach and the object for Push.
 
 Usage: python benchmarks/context_identifiability.py [--family reach] [--draws 6]
@@ -23,6 +26,9 @@ os.environ.setdefault("MUJOCO_GL", "disable")
 
 import numpy as np  # noqa: E402
 import scipy.stats  # noqa: E402
+import torch  # noqa: E402
+
+import claw_tdmpc2 as claw  # noqa: E402
 
 from common.context import collect_episodes  # noqa: E402
 from common.envs import env_param, make_env, num_envs  # noqa: E402
@@ -49,16 +55,39 @@ def nearest_centroid_accuracy(features: np.ndarray, labels: np.ndarray) -> int:
     return hits
 
 
+def train_encoder_probe(train: list, train_labels, test: list, test_labels, steps: int, seed: int = 0) -> int:
+    """Fit claw.ContextEncoder + a linear goal head on `train` contexts (tensors [N, 2*obs+act+1]);
+    return how many `test` contexts it classifies correctly."""
+    torch.manual_seed(seed)
+    args = claw.Args()
+    encoder = claw.ContextEncoder(train[0].shape[1], args)
+    head = torch.nn.Linear(args.context_dim, int(max(train_labels)) + 1)
+    optimizer = torch.optim.Adam([*encoder.parameters(), *head.parameters()], lr=args.hypernet_lr)
+    labels = torch.as_tensor(train_labels)
+    for _ in range(steps):
+        logits = head(torch.stack([encoder(c) for c in train]))
+        loss = torch.nn.functional.cross_entropy(logits, labels)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        predicted = head(torch.stack([encoder(c) for c in test])).argmax(1).numpy()
+    return int((predicted == np.asarray(test_labels)).sum())
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--family", choices=sorted(TRACKED_SLICE), default="reach")
     parser.add_argument("--draws", type=int, default=6, help="contexts per goal")
     parser.add_argument("--context-episodes", type=int, default=3)
+    parser.add_argument("--probe-draws", type=int, default=8, help="training contexts per goal for the learned probe")
+    parser.add_argument("--probe-steps", type=int, default=500)
     opts = parser.parse_args()
 
     n = num_envs(opts.family)
     goals = np.array([env_param(opts.family, g) for g in range(n)])
-    labels, means, slopes, distance_hits = [], [], [], 0
+    labels, means, slopes, distance_hits, tensors = [], [], [], 0, []
+    probe_train, probe_labels = [], []
     for g in range(n):
         env = make_env(opts.family, g, seed=0)
         for draw in range(opts.draws):
@@ -67,7 +96,10 @@ def main():
             position = context["next_obs"][:, TRACKED_SLICE[opts.family]]
             scores = [scipy.stats.spearmanr(context["reward"], -np.linalg.norm(position - goal, axis=1))[0] for goal in goals]
             distance_hits += int(np.nanargmax(scores) == g)
-            labels.append(g), means.append(mean), slopes.append(slope)
+            labels.append(g), means.append(mean), slopes.append(slope), tensors.append(claw.context_tensor(context, "cpu"))
+        for draw in range(opts.probe_draws):  # disjoint seeds: the probe never sees a test context
+            probe_train.append(claw.context_tensor(collect_episodes(env, opts.context_episodes, seed=10**6 + 1000 * g + draw), "cpu"))
+            probe_labels.append(g)
         start = context["obs"][0, TRACKED_SLICE[opts.family]]
         print(f"goal {g} {goals[g]}: distance from start {np.linalg.norm(goals[g] - start):.3f}, "
               f"mean reward (last draw) {mean[0]:.3f}, position range {np.ptp(position, 0).round(3)}")
@@ -76,6 +108,8 @@ def main():
     print(f"mean reward:          {nearest_centroid_accuracy(np.array(means), labels)}/{total}")
     print(f"+ reward~position:    {nearest_centroid_accuracy(np.c_[np.array(means), np.array(slopes)], labels)}/{total}")
     print(f"distance form (bound): {distance_hits}/{total}")
+    hits = train_encoder_probe(probe_train, probe_labels, tensors, labels, opts.probe_steps)
+    print(f"learned encoder:      {hits}/{total} ({opts.probe_draws} training contexts per goal, {opts.probe_steps} Adam steps)")
 
 
 if __name__ == "__main__":

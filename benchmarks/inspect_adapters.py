@@ -10,6 +10,7 @@ between two contexts of the *same* environment (noise) against the distance betw
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import os
 import sys
@@ -21,7 +22,7 @@ import torch  # noqa: E402
 
 import claw_tdmpc2 as claw  # noqa: E402
 from common.context import collect_episodes  # noqa: E402
-from common.envs import make_env, num_envs  # noqa: E402
+from common.envs import episode_length, make_env, num_envs  # noqa: E402
 
 
 def main(argv=None):
@@ -61,14 +62,29 @@ def main(argv=None):
     replay = claw.ReplayBuffer(state["replay"]["size"], obs_dim, act_dim, n, args.horizon, "cpu")
     replay.load_state_dict(state["replay"])
     torch.manual_seed(0)
-    contexts = [c for c in state["contexts"]]
-    phi = hypernet(claw.sample_context(contexts, 0, args.context_batch_size))
-    loss, _, _ = claw.world_model_loss(model, claw.adapted_weights(model, phi, layout), *replay.sample(0, args.batch_size), 0.95, args)
-    (loss + args.adapter_l2 * phi[:n_wm].pow(2).sum()).backward()
+    phi = hypernet(claw.sample_context(list(state["contexts"]), 0, args.context_batch_size))
+    batch, weights = replay.sample(0, args.batch_size), claw.adapted_weights(model, phi, layout)
+    ep_len = episode_length(args.family)
+    discount = args.discount if args.discount is not None else min(max((ep_len / 5 - 1) / (ep_len / 5), 0.95), 0.995)
+
+    def loss_with(**coefs):  # the world-model loss, reseeded so every call draws the same target heads
+        torch.manual_seed(1)
+        return claw.world_model_loss(model, weights, *batch, discount, dataclasses.replace(args, **coefs))[0]
+
+    penalty = args.adapter_l2 * phi[:n_wm].pow(2).sum()
+    (loss_with() + penalty).backward(retain_graph=True)
     parts = {"context encoder": hypernet.encoder, "generator": hypernet.generator}
     norms = {name: torch.cat([p.grad.flatten() for p in part.parameters()]).norm() for name, part in parts.items()}
     norms.update({"chunk embeddings": hypernet.chunk_embeddings.grad.norm(), "template": hypernet.template.grad.norm()})
     print("gradient norms of one world-model loss: " + ", ".join(f"{k} {v:.2e}" for k, v in norms.items()))
+    # which weighted loss term reaches the context encoder: only task-dependent terms can teach it the task
+    coefs = ("consistency_coef", "reward_coef", "value_coef")
+    terms = {c.split("_")[0]: loss_with(**{other: 0.0 for other in coefs if other != c}) for c in coefs}
+    terms["adapter L2"] = penalty
+    encoder_params = list(hypernet.encoder.parameters())
+    split = {name: torch.cat([g.flatten() for g in torch.autograd.grad(term, encoder_params, retain_graph=True)]).norm()
+             for name, term in terms.items()}
+    print("context-encoder gradient norm by weighted loss term: " + ", ".join(f"{k} {v:.2e}" for k, v in split.items()))
 
 
 if __name__ == "__main__":
