@@ -102,3 +102,19 @@ def test_context_identifiability_statistics_on_synthetic_contexts():
     separable = labels[:, None] * 10.0 + rng.normal(0, 0.1, (12, 1))
     assert context_identifiability.nearest_centroid_accuracy(separable, labels) == 12
     assert context_identifiability.nearest_centroid_accuracy(rng.normal(size=(12, 1)), labels) < 12
+
+
+def test_encoder_probe_learns_a_goal_that_shifts_the_reward():
+    import torch
+    rng = np.random.default_rng(1)
+
+    def contexts(label, count):  # 20 transitions of width 83 (reach's 2*39+4+1); reward column shifted by label
+        rows = [rng.normal(size=(20, 83)).astype(np.float32) for _ in range(count)]
+        for r in rows:
+            r[:, 43] += 3.0 * label
+        return [torch.as_tensor(r) for r in rows]
+
+    train = contexts(0, 4) + contexts(1, 4)
+    test = contexts(0, 3) + contexts(1, 3)
+    hits = context_identifiability.train_encoder_probe(train, [0] * 4 + [1] * 4, test, [0] * 3 + [1] * 3, steps=60)
+    assert hits == 6
