@@ -22,6 +22,7 @@ import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 
 from benchmarks.aggregate import load_runs, summarize  # noqa: E402
 from benchmarks.experiments import SIZE_RANKS  # noqa: E402
@@ -162,11 +163,17 @@ def figure_exp4(rows, curves, out) -> str | None:
     for method in ("film", "concat"):
         for r in select(cw, method=method, size=size):
             ax_rank.axhline(r["mean"], color=COLORS[method], linestyle="--", label=LABELS[method])
+            ax_rank.axhspan(r["mean"] - _ci(r["ci95"]), r["mean"] + _ci(r["ci95"]), color=COLORS[method], alpha=0.1)
             if method == "film":  # FiLM spends a scale and a shift per world-model hidden feature
                 film_percent = 100 * film_parameters(size) / world_model
                 ax_pct.errorbar([film_percent], [r["mean"]], yerr=[_ci(r["ci95"])], color=COLORS[method], marker="s", capsize=3, label="FiLM")
     ax_rank.set(xscale="log", xlabel="LoRA rank", ylabel="episode return", title=f"Cheetah/Walker, size {size}")
     ax_pct.set(xscale="log", xlabel="adapter size (% of world model)", ylabel="episode return")
+    for ax in (ax_rank, ax_pct):  # plain numbers at the data points, not 4x10^0 minor ticks
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    ax_rank.set_xticks(ranks)
+    ax_pct.set_xticks([round(p, 1) for p in percents])
     ax_rank.legend()
     ax_pct.legend()
     fig.tight_layout()
