@@ -2,7 +2,7 @@
 
 The Reach/Push goal is hidden from the observation, so an adaptation method can only learn it
 from the context's rewards. This script draws several 3-episode random-policy contexts per goal
-(as at test time) and classifies the goal three ways:
+(as at test time) and classifies the goal four ways:
   mean reward          leave-one-out nearest centroid on the context's mean reward
   + reward~position    the same plus the least-squares slope of reward on the tracked position
   distance form        the candidate goal whose distance to the tracked position best
@@ -13,7 +13,7 @@ from the context's rewards. This script draws several 3-episode random-policy co
                        from separate contexts: can the architecture extract the goal at all?
 The tracked position is the hand for Reach and the object for Push.
 
-Usage: python benchmarks/context_identifiability.py [--family reach] [--draws 6]
+Usage: python benchmarks/context_identifiability.py [--family reach] [--draws 6] [--probe-pool 10]
 """
 from __future__ import annotations
 
@@ -55,9 +55,11 @@ def nearest_centroid_accuracy(features: np.ndarray, labels: np.ndarray) -> int:
     return hits
 
 
-def train_encoder_probe(train: list, train_labels, test: list, test_labels, steps: int, seed: int = 0) -> int:
+def train_encoder_probe(train: list, train_labels, test: list, test_labels, steps: int, seed: int = 0,
+                        resample: int | None = None) -> int:
     """Fit claw.ContextEncoder + a linear goal head on `train` contexts (tensors [N, 2*obs+act+1]);
-    return how many `test` contexts it classifies correctly."""
+    return how many `test` contexts it classifies correctly. With `resample`, every step feeds a
+    fresh random `resample` rows of each training tensor, as pretraining samples its context buffer."""
     torch.manual_seed(seed)
     args = claw.Args()
     encoder = claw.ContextEncoder(train[0].shape[1], args)
@@ -65,7 +67,8 @@ def train_encoder_probe(train: list, train_labels, test: list, test_labels, step
     optimizer = torch.optim.Adam([*encoder.parameters(), *head.parameters()], lr=args.hypernet_lr)
     labels = torch.as_tensor(train_labels)
     for _ in range(steps):
-        logits = head(torch.stack([encoder(c) for c in train]))
+        batch = [c[torch.randint(len(c), (resample,))] for c in train] if resample else train
+        logits = head(torch.stack([encoder(c) for c in batch]))
         loss = torch.nn.functional.cross_entropy(logits, labels)
         optimizer.zero_grad()
         loss.backward()
@@ -82,6 +85,9 @@ def main():
     parser.add_argument("--context-episodes", type=int, default=3)
     parser.add_argument("--probe-draws", type=int, default=8, help="training contexts per goal for the learned probe")
     parser.add_argument("--probe-steps", type=int, default=500)
+    parser.add_argument("--probe-pool", type=int, default=0,
+                        help="instead of fixed contexts, train on 256-transition resamples of a pool of this many "
+                             "pi_con episodes per goal (pretraining's context buffer holds 10)")
     opts = parser.parse_args()
 
     n = num_envs(opts.family)
@@ -97,7 +103,11 @@ def main():
             scores = [scipy.stats.spearmanr(context["reward"], -np.linalg.norm(position - goal, axis=1))[0] for goal in goals]
             distance_hits += int(np.nanargmax(scores) == g)
             labels.append(g), means.append(mean), slopes.append(slope), tensors.append(claw.context_tensor(context, "cpu"))
-        for draw in range(opts.probe_draws):  # disjoint seeds: the probe never sees a test context
+        if opts.probe_pool:  # one pool per goal, presented probe_draws times per step
+            pool = claw.context_tensor(collect_episodes(env, opts.probe_pool, seed=10**6 + 1000 * g), "cpu")
+            probe_train += [pool] * opts.probe_draws
+            probe_labels += [g] * opts.probe_draws
+        for draw in range(0 if opts.probe_pool else opts.probe_draws):  # disjoint seeds: never a test context
             probe_train.append(claw.context_tensor(collect_episodes(env, opts.context_episodes, seed=10**6 + 1000 * g + draw), "cpu"))
             probe_labels.append(g)
         start = context["obs"][0, TRACKED_SLICE[opts.family]]
@@ -108,8 +118,10 @@ def main():
     print(f"mean reward:          {nearest_centroid_accuracy(np.array(means), labels)}/{total}")
     print(f"+ reward~position:    {nearest_centroid_accuracy(np.c_[np.array(means), np.array(slopes)], labels)}/{total}")
     print(f"distance form (bound): {distance_hits}/{total}")
-    hits = train_encoder_probe(probe_train, probe_labels, tensors, labels, opts.probe_steps)
-    print(f"learned encoder:      {hits}/{total} ({opts.probe_draws} training contexts per goal, {opts.probe_steps} Adam steps)")
+    hits = train_encoder_probe(probe_train, probe_labels, tensors, labels, opts.probe_steps,
+                               resample=256 if opts.probe_pool else None)
+    source = f"256-transition resamples of a {opts.probe_pool}-episode pool" if opts.probe_pool else "fixed training contexts"
+    print(f"learned encoder:      {hits}/{total} ({opts.probe_draws} {source} per goal and step, {opts.probe_steps} Adam steps)")
 
 
 if __name__ == "__main__":
