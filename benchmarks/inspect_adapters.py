@@ -56,7 +56,7 @@ def main(argv=None):
         same = torch.stack([(values[e, 0] - values[e, 1]).norm() for e in range(n)]).mean()
         other = torch.stack([(values[a, 0] - values[b, 0]).norm() for a, b in itertools.combinations(range(n), 2)]).mean()
         size = torch.stack([values[e, 0].norm() for e in range(n)]).mean()
-        print(f"{name:24s} mean norm {size:.4f} | same env, other context {same:.4f} | other env {other:.4f} | "
+        print(f"{name:24s} mean norm {size:.4f} | same env, other context {same:.2e} | other env {other:.2e} | "
               f"ratio {other / same.clamp_min(1e-12):.2f}")
     # where the world-model loss's gradient goes inside the hypernetwork, on the run's own replay
     replay = claw.ReplayBuffer(state["replay"]["size"], obs_dim, act_dim, n, args.horizon, "cpu")
