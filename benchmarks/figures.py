@@ -61,9 +61,9 @@ def panels(families, prefix):
 
 
 def save_panel_grid(families, prefix, draw, path):
-    """One subplot per `panels` entry; draw(ax, family, metric) fills it; legend on the first."""
+    """One subplot per `panels` entry; draw(ax, family, metric) fills it; one legend, right of the top row."""
     grid = panels(families, prefix)
-    fig, axes = plt.subplots(len(grid), len(families), figsize=(4.5 * len(families), 3.5 * len(grid)), squeeze=False)
+    fig, axes = plt.subplots(len(grid), len(families), figsize=(4.5 * len(families) + 1.5, 3.5 * len(grid)), squeeze=False)
     for ax_row, panel_row in zip(axes, grid):
         for ax, panel in zip(ax_row, panel_row):
             if panel is None:
@@ -72,7 +72,7 @@ def save_panel_grid(families, prefix, draw, path):
             family, metric, label = panel
             draw(ax, family, metric)
             ax.set(title=family, ylabel=label)
-    axes[0][0].legend()
+    axes[0][-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")  # outside: bands fill the panels
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
