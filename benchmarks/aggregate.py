@@ -4,7 +4,8 @@ and report mean and 95% Student-t CI across seeds as CSV and a markdown table.
     python benchmarks/aggregate.py runs/sweeps/cpu      # writes summary.csv, curves.csv, summary.md there
 
 Metrics per run (keys written by every method script):
-  online_return / online_success   mean over all Exp 1 test-time episodes (family average)
+  online_return / online_success   mean over all Exp 1 test-time episodes (family average;
+                                   success only for Meta-World families)
   offline_return / offline_success Exp 2 at each sweep point x = offline gradient steps
                                    (CLAW, FiLM, Concat: x = 0, their single adaptation pass)
   online_return_env{j}             Exp 1 return in environment j alone
@@ -28,6 +29,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from common.evaluation import mean_ci  # noqa: E402
 
 GROUP_KEYS = ("method", "family", "size", "rank")
+SUCCESS_FAMILIES = ("reach", "push")  # Meta-World reports success; elsewhere the scripts log a constant 0
 
 
 def load_runs(root: str) -> list[dict]:
@@ -46,7 +48,7 @@ def load_runs(root: str) -> list[dict]:
 def run_metrics(run: dict) -> dict:
     """{(metric, x): value} of one run; x is None for scalars without a sweep axis."""
     scalars, metrics = run["scalars"], {}
-    for key in ("return", "success"):
+    for key in ("return", "success") if run.get("family") in SUCCESS_FAMILIES else ("return",):
         online = scalars.get(f"eval/online/{'episodic_return' if key == 'return' else key}", [])
         if online:
             metrics[(f"online_{key}", None)] = sum(v for _, v in online) / len(online)
@@ -87,7 +89,7 @@ def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str,
             mean, half = mean_ci(values)
             rows.append({**dict(zip(GROUP_KEYS, key)), "metric": metric, "x": x, "n": len(values), "mean": mean, "ci95": half,
                          "seeds": ",".join(str(r["seed"]) for r in members)})
-        for metric in ("episodic_return", "success"):
+        for metric in ("episodic_return", "success") if key[GROUP_KEYS.index("family")] in SUCCESS_FAMILIES else ("episodic_return",):
             by_step = defaultdict(list)
             for run in members:
                 for step, value in run["scalars"].get(f"eval/online/{metric}", []):

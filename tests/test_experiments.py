@@ -66,6 +66,13 @@ def test_grouping_reports_incomplete_runs(tmp_path):
     assert [c["mean"] for c in curves if c["metric"] == "online_return"] == pytest.approx([20.0, 30.0])
     assert problems == [("b", "status failed (returncode 1)"), ("c", "finished without evaluation events")]
     assert "Runs not aggregated" in aggregate.markdown(rows, problems)
+    # success is a Meta-World metric: a dm_control family's constant-zero success is not reported
+    success_scalars = {"eval/online/episodic_return": [(100, 5.0)], "eval/online/success": [(100, 0.0)]}
+    for family, expected in (("reach", {"online_return", "online_success"}), ("cheetah_walker", {"online_return"})):
+        run = {"dir": family, "method": "claw", "family": family, "size": "I", "rank": 2, "seed": 1, "status": "done",
+               "scalars": success_scalars}
+        rows, curves, _ = aggregate.summarize([run])
+        assert {r["metric"] for r in rows} == expected and {c["metric"] for c in curves} == expected
 
 
 def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
