@@ -165,6 +165,13 @@ def validate_args(args: Args):
         raise SystemExit("error: --eval-only needs --checkpoint PATH")
 
 
+def default_discount(args: Args, episode_length: int) -> float:
+    """--discount, else TD-MPC2's episode-length heuristic clip((L/5-1)/(L/5), 0.95, 0.995)."""
+    if args.discount is not None:
+        return args.discount
+    return min(max((episode_length / 5 - 1) / (episode_length / 5), 0.95), 0.995)
+
+
 # ---------------------------------------------------------------------------------------------
 # Math: symlog two-hot regression (TD-MPC2)
 # ---------------------------------------------------------------------------------------------
@@ -731,7 +738,7 @@ def main(args: Args):
     obs_dim, act_dim = envs[0].observation_space.shape[0], envs[0].action_space.shape[0]
     total_timesteps = args.total_timesteps or DEFAULT_TOTAL_TIMESTEPS[args.family]
     seed_steps = args.seed_steps if args.seed_steps is not None else max(1000, 5 * ep_len)
-    discount = args.discount if args.discount is not None else min(max((ep_len / 5 - 1) / (ep_len / 5), 0.95), 0.995)
+    discount = default_discount(args, ep_len)
 
     model = WorldModel(obs_dim, act_dim, args.model_size, args).to(device)
     layout, n_wm, n_pi = lora_layout(model, args.rank)

@@ -32,6 +32,15 @@ GROUP_KEYS = ("method", "family", "size", "rank")
 SUCCESS_FAMILIES = ("reach", "push")  # Meta-World reports success; elsewhere the scripts log a constant 0
 
 
+def reported_keys(family: str) -> tuple[str, ...]:
+    return ("return", "success") if family in SUCCESS_FAMILIES else ("return",)
+
+
+def eval_tag(phase: str, key: str) -> str:
+    """TensorBoard tag the scripts log a metric under, e.g. eval/online/episodic_return."""
+    return f"eval/{phase}/{'episodic_return' if key == 'return' else key}"
+
+
 def load_runs(root: str) -> list[dict]:
     """run.json of every run under root, with its scalars as {tag: [(step, value), ...]}."""
     runs = []
@@ -48,11 +57,11 @@ def load_runs(root: str) -> list[dict]:
 def run_metrics(run: dict) -> dict:
     """{(metric, x): value} of one run; x is None for scalars without a sweep axis."""
     scalars, metrics = run["scalars"], {}
-    for key in ("return", "success") if run.get("family") in SUCCESS_FAMILIES else ("return",):
-        online = scalars.get(f"eval/online/{'episodic_return' if key == 'return' else key}", [])
+    for key in reported_keys(run.get("family")):
+        online = scalars.get(eval_tag("online", key), [])
         if online:
             metrics[(f"online_{key}", None)] = sum(v for _, v in online) / len(online)
-        for step, value in scalars.get(f"eval/offline/{'episodic_return' if key == 'return' else key}", []):
+        for step, value in scalars.get(eval_tag("offline", key), []):
             metrics[(f"offline_{key}", step)] = value
     for tag, values in scalars.items():  # per environment, e.g. Exp 5 scores Cheetah (env 0) alone
         parts = tag.split("/")
@@ -89,14 +98,14 @@ def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str,
             mean, half = mean_ci(values)
             rows.append({**dict(zip(GROUP_KEYS, key)), "metric": metric, "x": x, "n": len(values), "mean": mean, "ci95": half,
                          "seeds": ",".join(str(r["seed"]) for r in members)})
-        for metric in ("episodic_return", "success") if key[GROUP_KEYS.index("family")] in SUCCESS_FAMILIES else ("episodic_return",):
+        for metric in reported_keys(key[GROUP_KEYS.index("family")]):
             by_step = defaultdict(list)
             for run in members:
-                for step, value in run["scalars"].get(f"eval/online/{metric}", []):
+                for step, value in run["scalars"].get(eval_tag("online", metric), []):
                     by_step[step].append(value)
             for step, values in sorted(by_step.items()):
                 mean, half = mean_ci(values)
-                curves.append({**dict(zip(GROUP_KEYS, key)), "metric": f"online_{metric.replace('episodic_', '')}",
+                curves.append({**dict(zip(GROUP_KEYS, key)), "metric": f"online_{metric}",
                                "step": step, "n": len(values), "mean": mean, "ci95": half})
     return rows, curves, problems
 

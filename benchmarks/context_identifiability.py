@@ -102,7 +102,10 @@ def main():
             position = context["next_obs"][:, TRACKED_SLICE[opts.family]]
             scores = [scipy.stats.spearmanr(context["reward"], -np.linalg.norm(position - goal, axis=1))[0] for goal in goals]
             distance_hits += int(np.nanargmax(scores) == g)
-            labels.append(g), means.append(mean), slopes.append(slope), tensors.append(claw.context_tensor(context, "cpu"))
+            labels.append(g)
+            means.append(mean)
+            slopes.append(slope)
+            tensors.append(claw.context_tensor(context, "cpu"))
         if opts.probe_pool:  # one pool per goal, presented probe_draws times per step
             pool = claw.context_tensor(collect_episodes(env, opts.probe_pool, seed=10**6 + 1000 * g), "cpu")
             probe_train += [pool] * opts.probe_draws

@@ -64,8 +64,7 @@ def main(argv=None):
     torch.manual_seed(0)
     phi = hypernet(claw.sample_context(list(state["contexts"]), 0, args.context_batch_size))
     batch, weights = replay.sample(0, args.batch_size), claw.adapted_weights(model, phi, layout)
-    ep_len = episode_length(args.family)
-    discount = args.discount if args.discount is not None else min(max((ep_len / 5 - 1) / (ep_len / 5), 0.95), 0.995)
+    discount = claw.default_discount(args, episode_length(args.family))
 
     def loss_with(**coefs):  # the world-model loss, reseeded so every call draws the same target heads
         torch.manual_seed(1)

@@ -42,7 +42,7 @@ def measure(size: str, family: str, steps: int, rank: int) -> dict:
     env = make_env(family, 0, seed=0)
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     ep_len = episode_length(family)
-    discount = min(max((ep_len / 5 - 1) / (ep_len / 5), 0.95), 0.995)
+    discount = claw.default_discount(args, ep_len)
     model = claw.WorldModel(obs_dim, act_dim, size, args)
     layout, n_wm, n_pi = claw.lora_layout(model, rank)
     hypernet = claw.Hypernet(2 * obs_dim + act_dim + 1, claw.lora_template(layout, n_wm + n_pi), args)

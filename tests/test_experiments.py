@@ -5,6 +5,7 @@ import os
 import numpy as np
 import pytest
 import scipy.stats
+import torch
 
 from benchmarks import aggregate, context_identifiability, experiments, figures, inspect_adapters
 from common.evaluation import mean_ci
@@ -112,7 +113,6 @@ def test_context_identifiability_statistics_on_synthetic_contexts():
 
 
 def test_encoder_probe_learns_a_goal_that_shifts_the_reward():
-    import torch
     rng = np.random.default_rng(1)
 
     def contexts(label, count):  # 20 transitions of width 83 (reach's 2*39+4+1); reward column shifted by label
