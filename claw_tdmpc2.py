@@ -81,8 +81,10 @@ class Args:
     """temporal decay of the multi-step losses"""
     tau: float = 0.01
     """target critic EMA rate (decay 0.99)"""
-    discount: Optional[float] = None
-    """default: TD-MPC2's episode-length heuristic clip((L/5-1)/(L/5), 0.95, 0.995)"""
+    discount: float = 0.99
+    """the paper's value for every family"""
+    discount_heuristic: bool = False
+    """use TD-MPC2's episode-length heuristic clip((L/5-1)/(L/5), 0.95, 0.995) instead of --discount (0.95 on Meta-World)"""
     consistency_coef: float = 20.0
     reward_coef: float = 0.1
     value_coef: float = 0.1
@@ -105,7 +107,7 @@ class Args:
     min_std: float = 0.05
     max_std: float = 2.0
 
-    # CLAW hypernetwork (paper Table "arch"; context batch and buffer sizes are our choice)
+    # CLAW hypernetwork (paper Table "arch"; the context pool and standardisation are our choice)
 
     adapter_l2: float = 0.01
     """lambda of the adapter L2 penalty"""
@@ -115,15 +117,17 @@ class Args:
     generator_hidden: int = 128
     chunk_size: int = 64
     chunk_embed_dim: int = 32
-    context_batch_size: int = 256
-    """transitions drawn from an environment's context buffer per hypernet pass in pretraining"""
-    context_buffer_episodes: int = 10
-    """pi_con episodes stored per environment for pretraining"""
+    context_pool_episodes: int = 20
+    """pi_con episodes kept per environment; a pretraining context is --context-episodes of them"""
+    context_refresh_every: int = 20
+    """agent steps between pool refreshes, each replacing one environment's oldest episode (in turn); 0: never"""
+    context_standardize: bool = True
+    """standardise context features by per-feature statistics of the initial pool (kept in the checkpoint)"""
 
     # evaluation (paper Exp 1 / Exp 2)
 
     context_episodes: int = 3
-    """pi_con episodes collected per test environment"""
+    """pi_con episodes per context: per test environment, and per hypernet pass in pretraining"""
     online_eval_steps: int = 30_000
     """Exp 1 test-time agent steps per environment"""
     eval_episodes: int = 10
@@ -157,13 +161,15 @@ def validate_args(args: Args):
         path = getattr(args, name)
         if path is not None and not os.path.isfile(path):
             raise SystemExit(f"error: --{name} {path!r} does not exist")
+    if not 1 <= args.context_episodes <= args.context_pool_episodes or args.context_refresh_every < 0:
+        raise SystemExit(f"error: need 1 <= --context-episodes ({args.context_episodes}) <= --context-pool-episodes ({args.context_pool_episodes}) and --context-refresh-every >= 0")
     if args.eval_only and args.checkpoint is None:
         raise SystemExit("error: --eval-only needs --checkpoint PATH")
 
 
 def default_discount(args: Args, episode_length: int) -> float:
-    """--discount, else TD-MPC2's episode-length heuristic clip((L/5-1)/(L/5), 0.95, 0.995)."""
-    if args.discount is not None:
+    """--discount (the paper's 0.99), or with --discount-heuristic TD-MPC2's clip((L/5-1)/(L/5), 0.95, 0.995)."""
+    if not args.discount_heuristic:
         return args.discount
     return min(max((episode_length / 5 - 1) / (episode_length / 5), 0.95), 0.995)
 
@@ -394,15 +400,23 @@ def hidden_mlp(d_in: int, d_hidden: int, d_out: int) -> nn.Sequential:
 
 
 class ContextEncoder(nn.Module):
-    """h_emb per transition, mean pool (order-free), h_con -> context embedding u_con."""
+    """Standardise, h_emb per transition, mean pool (order-free), h_con -> context embedding u_con."""
 
     def __init__(self, transition_dim: int, args: Args):
         super().__init__()
+        self.register_buffer("feature_mean", torch.zeros(transition_dim))  # identity until set_statistics
+        self.register_buffer("feature_std", torch.ones(transition_dim))
         self.embed = nn.Sequential(hidden_mlp(transition_dim, args.embed_hidden, args.embed_hidden), nn.Mish())
         self.context = hidden_mlp(args.embed_hidden, args.embed_hidden, args.context_dim)
 
+    def set_statistics(self, transitions):
+        """Fix the per-feature standardisation; constant features (std ~0) are only centred."""
+        std = transitions.std(0)
+        self.feature_mean.copy_(transitions.mean(0))
+        self.feature_std.copy_(torch.where(std > 1e-6, std, torch.ones_like(std)))
+
     def forward(self, transitions):  # [N, transition_dim] -> [context_dim]
-        return self.context(self.embed(transitions).mean(0))
+        return self.context(self.embed((transitions - self.feature_mean) / self.feature_std).mean(0))
 
 
 class Hypernet(nn.Module):
@@ -541,9 +555,35 @@ def context_tensor(context: dict, device) -> torch.Tensor:
     return torch.as_tensor(np.concatenate(parts, 1), dtype=torch.float32, device=device)
 
 
-def sample_context(contexts: list, env_id: int, batch_size: int) -> torch.Tensor:
-    rows = contexts[env_id]
-    return rows[torch.randint(len(rows), (batch_size,), device=rows.device)]
+class ContextPool:
+    """Pretraining contexts: whole pi_con episodes per environment, drawn as at test time (--context-episodes
+    of them); refreshed during training so that no fixed set of episodes can identify an environment."""
+
+    def __init__(self, envs: list, args: Args, device):
+        self.envs, self.args, self.device, self.episodes, self.collected = envs, args, device, [[] for _ in envs], 0
+
+    def fill(self, encoder: nn.Module):  # paper Alg. 1, lines 1-2; the initial pool fixes the standardisation
+        for _ in range(self.args.context_pool_episodes):
+            for env_id in range(len(self.envs)):
+                self.collect(env_id)
+        if self.args.context_standardize:
+            encoder.set_statistics(torch.cat(sum(self.episodes, [])))
+
+    def collect(self, env_id: int):
+        seed = 1_000_000 * self.args.seed + self.collected  # a new episode every time, never an evaluation seed
+        self.episodes[env_id].append(context_tensor(collect_episodes(self.envs[env_id], 1, seed=seed), self.device))
+        self.collected += 1
+
+    def refresh(self, global_step: int):  # every --context-refresh-every steps, one environment in turn
+        every = self.args.context_refresh_every
+        if every and global_step % every == 0 and self.episodes[0]:  # an unfilled pool stays empty
+            env_id = global_step // every % len(self.envs)
+            self.episodes[env_id].pop(0)
+            self.collect(env_id)
+
+    def sample(self, env_id: int) -> torch.Tensor:
+        pool = self.episodes[env_id]
+        return torch.cat([pool[i] for i in torch.randperm(len(pool))[: self.args.context_episodes].tolist()])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -627,11 +667,11 @@ def make_optimizers(model: WorldModel, hypernet: nn.Module, args: Args):
 # ---------------------------------------------------------------------------------------------
 # Persistence
 # ---------------------------------------------------------------------------------------------
-def save_checkpoint(path, global_step, model, hypernet, optimizers, scale, replay, contexts, args: Args):
+def save_checkpoint(path, global_step, model, hypernet, optimizers, scale, replay, pool, args: Args):
     state = {
         "global_step": global_step, "args": vars(args), "model": model.state_dict(), "hypernet": hypernet.state_dict(),
         "optimizers": [opt.state_dict() for opt in optimizers], "scale": scale.value.cpu(),
-        "replay": replay.state_dict() if replay is not None else None, "contexts": [c.cpu() for c in contexts],
+        "replay": replay.state_dict() if replay is not None else None, "contexts": (pool.episodes, pool.collected),
         "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
                 "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None},
     }
@@ -713,7 +753,7 @@ def main(args: Args):
     validate_args(args)
     if args.eval_only:  # architecture and family come from the checkpoint
         saved = torch.load(args.checkpoint, map_location="cpu", weights_only=False)["args"]
-        for key in ("family", "model_size", "rank", "num_bins", "vmin", "vmax", "horizon", "discount", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim"):
+        for key in ("family", "model_size", "rank", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim"):
             setattr(args, key, saved[key])
     random.seed(args.seed)
     np.random.seed(args.seed)
@@ -757,15 +797,14 @@ def main(args: Args):
     replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     global_step = 0
+    pool = ContextPool([make_env(args.family, env_id, seed=args.seed + 200 + env_id) for env_id in range(n_envs)], args, device)
     if args.resume:
         state = load_checkpoint(args.resume, model, hypernet, optimizers, scale, replay, restore_rng=True)
-        contexts = [c.to(device) for c in state["contexts"]]
+        pool.episodes, pool.collected = [[e.to(device) for e in p] for p in state["contexts"][0]], state["contexts"][1]
         global_step = state["global_step"]
         print(f"resumed from {args.resume} at step {global_step}", flush=True)
     else:
-        # context buffers: pi_con episodes per environment (paper Alg. 1, lines 1-2)
-        contexts = [context_tensor(collect_episodes(env, args.context_buffer_episodes, seed=args.seed + 100 + j), device)
-                    for j, env in enumerate(envs)]
+        pool.fill(hypernet.encoder)  # pi_con episodes per environment
         # update buffers: random-action prefill, whole episodes, every environment
         episodes_per_env = max(1, math.ceil(seed_steps / (n_envs * ep_len)))
         for env_id, env in enumerate(envs):
@@ -782,20 +821,21 @@ def main(args: Args):
         for _ in range(burst):
             k = random.randrange(n_envs)
             update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(k, args.batch_size),
-                   sample_context(contexts, k, args.context_batch_size), discount, args)
+                   pool.sample(k), discount, args)
 
     rollout_env = random.randrange(n_envs)
     obs, _ = envs[rollout_env].reset()
+    rollout_context = pool.sample(rollout_env)  # one context per episode, as at test time
     first, episode_return, prev_mean = True, 0.0, None
     start_time, start_step = time.time(), global_step
     while global_step < total_timesteps:
         # update the base and hypernet on a training environment sampled per step
         k = random.randrange(n_envs)
         info = update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(k, args.batch_size),
-                      sample_context(contexts, k, args.context_batch_size), discount, args)
+                      pool.sample(k), discount, args)
         # plan and act in the rollout environment with its freshly generated adapters
         with torch.no_grad():
-            weights = adapted_weights(model, hypernet(sample_context(contexts, rollout_env, args.context_batch_size)), layout)
+            weights = adapted_weights(model, hypernet(rollout_context), layout)
         action, prev_mean = plan(model, weights, torch.as_tensor(obs, dtype=torch.float32, device=device),
                                  None if first else prev_mean, discount, args, explore=True)
         action = action.cpu().numpy()
@@ -809,7 +849,9 @@ def main(args: Args):
             writer.add_scalar(f"charts/env{rollout_env}/episodic_return", episode_return, global_step)
             rollout_env = random.randrange(n_envs)
             obs, _ = envs[rollout_env].reset()
+            rollout_context = pool.sample(rollout_env)
             first, episode_return = True, 0.0
+        pool.refresh(global_step)
         if global_step % args.log_every == 0 or global_step == total_timesteps:
             sps = int((global_step - start_step) / (time.time() - start_time))
             for key, value in info.items():
@@ -820,8 +862,8 @@ def main(args: Args):
                   f"adapter_norm {float(info['adapter_norm']):.3f} | SPS {sps}", flush=True)
             writer.flush()
         if global_step % args.checkpoint_every == 0:
-            save_checkpoint(checkpoint_path, global_step, model, hypernet, optimizers, scale, replay, contexts, args)
-    save_checkpoint(checkpoint_path, global_step, model, hypernet, optimizers, scale, replay, contexts, args)
+            save_checkpoint(checkpoint_path, global_step, model, hypernet, optimizers, scale, replay, pool, args)
+    save_checkpoint(checkpoint_path, global_step, model, hypernet, optimizers, scale, replay, pool, args)
     print(f"saved {checkpoint_path}", flush=True)
     if args.evaluate_after_training:
         evaluate(model, hypernet, layout, discount, writer, device, args)

@@ -1,9 +1,8 @@
 """Post-hoc hypernetwork baseline (paper Exp 5, Table exp5-posthoc): CLAW's hypernet on a frozen base.
 
-Trains in sequence what CLAW trains jointly (cheetah_walker only). Pass 1, total/2 agent steps: plain
-TD-MPC2 (no hypernetwork, no adapters) on walker-run. Pass 2, the rest: base and target critic frozen,
-only CLAW's hypernetwork (context (s, a, r, s') -> LoRA adapters, CLAW's update) trains on cheetah-run,
-with its own prefill and context buffer. Evaluates on cheetah only: Exp 1 (online, one
+Trains in sequence what CLAW trains jointly (cheetah_walker only). Pass 1 (total/2 agent steps): plain TD-MPC2,
+no hypernetwork or adapters, on walker-run. Pass 2 (the rest): base and target critic frozen, only CLAW's hypernetwork
+trains (CLAW's update) on cheetah-run, with its own prefill and context pool. Evaluates on cheetah only: Exp 1 (online, one
 hypernet pass before every planner call) and Exp 2 (offline, one pass then frozen).
 
     python posthoc_tdmpc2.py  # size F, rank 8: 250k walker steps (base) + 250k cheetah steps (hypernet)
@@ -83,8 +82,10 @@ class Args:
     """temporal decay of the multi-step losses"""
     tau: float = 0.01
     """target critic EMA rate (decay 0.99)"""
-    discount: Optional[float] = None
-    """default: TD-MPC2's episode-length heuristic clip((L/5-1)/(L/5), 0.95, 0.995)"""
+    discount: float = 0.99
+    """the paper's value for every family"""
+    discount_heuristic: bool = False
+    """use TD-MPC2's episode-length heuristic clip((L/5-1)/(L/5), 0.95, 0.995) instead of --discount (0.95 on Meta-World)"""
     consistency_coef: float = 20.0
     reward_coef: float = 0.1
     value_coef: float = 0.1
@@ -107,7 +108,7 @@ class Args:
     min_std: float = 0.05
     max_std: float = 2.0
 
-    # CLAW hypernetwork (paper Table "arch"; context batch and buffer sizes are our choice)
+    # CLAW hypernetwork (paper Table "arch"; the context pool and standardisation are our choice)
 
     adapter_l2: float = 0.01
     """lambda of the adapter L2 penalty"""
@@ -117,15 +118,17 @@ class Args:
     generator_hidden: int = 128
     chunk_size: int = 64
     chunk_embed_dim: int = 32
-    context_batch_size: int = 256
-    """transitions drawn from an environment's context buffer per hypernet pass in pretraining"""
-    context_buffer_episodes: int = 10
-    """pi_con episodes stored per environment for pretraining"""
+    context_pool_episodes: int = 20
+    """pi_con episodes kept per environment; a pretraining context is --context-episodes of them"""
+    context_refresh_every: int = 20
+    """agent steps between pool refreshes, each replacing one environment's oldest episode (in turn); 0: never"""
+    context_standardize: bool = True
+    """standardise context features by per-feature statistics of the initial pool (kept in the checkpoint)"""
 
     # evaluation (paper Exp 1 / Exp 2)
 
     context_episodes: int = 3
-    """pi_con episodes collected per test environment"""
+    """pi_con episodes per context: per test environment, and per hypernet pass in pretraining"""
     online_eval_steps: int = 30_000
     """Exp 1 test-time agent steps per environment"""
     eval_episodes: int = 10
@@ -161,13 +164,15 @@ def validate_args(args: Args):
         path = getattr(args, name)
         if path is not None and not os.path.isfile(path):
             raise SystemExit(f"error: --{name} {path!r} does not exist")
+    if not 1 <= args.context_episodes <= args.context_pool_episodes or args.context_refresh_every < 0:
+        raise SystemExit(f"error: need 1 <= --context-episodes ({args.context_episodes}) <= --context-pool-episodes ({args.context_pool_episodes}) and --context-refresh-every >= 0")
     if args.eval_only and args.checkpoint is None:
         raise SystemExit("error: --eval-only needs --checkpoint PATH")
 
 
 def default_discount(args: Args, episode_length: int) -> float:
-    """--discount, else TD-MPC2's episode-length heuristic clip((L/5-1)/(L/5), 0.95, 0.995)."""
-    if args.discount is not None:
+    """--discount (the paper's 0.99), or with --discount-heuristic TD-MPC2's clip((L/5-1)/(L/5), 0.95, 0.995)."""
+    if not args.discount_heuristic:
         return args.discount
     return min(max((episode_length / 5 - 1) / (episode_length / 5), 0.95), 0.995)
 
@@ -398,15 +403,23 @@ def hidden_mlp(d_in: int, d_hidden: int, d_out: int) -> nn.Sequential:
 
 
 class ContextEncoder(nn.Module):
-    """h_emb per transition, mean pool (order-free), h_con -> context embedding u_con."""
+    """Standardise, h_emb per transition, mean pool (order-free), h_con -> context embedding u_con."""
 
     def __init__(self, transition_dim: int, args: Args):
         super().__init__()
+        self.register_buffer("feature_mean", torch.zeros(transition_dim))  # identity until set_statistics
+        self.register_buffer("feature_std", torch.ones(transition_dim))
         self.embed = nn.Sequential(hidden_mlp(transition_dim, args.embed_hidden, args.embed_hidden), nn.Mish())
         self.context = hidden_mlp(args.embed_hidden, args.embed_hidden, args.context_dim)
 
+    def set_statistics(self, transitions):
+        """Fix the per-feature standardisation; constant features (std ~0) are only centred."""
+        std = transitions.std(0)
+        self.feature_mean.copy_(transitions.mean(0))
+        self.feature_std.copy_(torch.where(std > 1e-6, std, torch.ones_like(std)))
+
     def forward(self, transitions):  # [N, transition_dim] -> [context_dim]
-        return self.context(self.embed(transitions).mean(0))
+        return self.context(self.embed((transitions - self.feature_mean) / self.feature_std).mean(0))
 
 
 class Hypernet(nn.Module):
@@ -545,9 +558,35 @@ def context_tensor(context: dict, device) -> torch.Tensor:
     return torch.as_tensor(np.concatenate(parts, 1), dtype=torch.float32, device=device)
 
 
-def sample_context(contexts: list, env_id: int, batch_size: int) -> torch.Tensor:
-    rows = contexts[env_id]
-    return rows[torch.randint(len(rows), (batch_size,), device=rows.device)]
+class ContextPool:
+    """Pretraining contexts: whole pi_con episodes per environment, drawn as at test time (--context-episodes
+    of them); refreshed during training so that no fixed set of episodes can identify an environment."""
+
+    def __init__(self, envs: list, args: Args, device):
+        self.envs, self.args, self.device, self.episodes, self.collected = envs, args, device, [[] for _ in envs], 0
+
+    def fill(self, encoder: nn.Module):  # paper Alg. 1, lines 1-2; the initial pool fixes the standardisation
+        for _ in range(self.args.context_pool_episodes):
+            for env_id in range(len(self.envs)):
+                self.collect(env_id)
+        if self.args.context_standardize:
+            encoder.set_statistics(torch.cat(sum(self.episodes, [])))
+
+    def collect(self, env_id: int):
+        seed = 1_000_000 * self.args.seed + self.collected  # a new episode every time, never an evaluation seed
+        self.episodes[env_id].append(context_tensor(collect_episodes(self.envs[env_id], 1, seed=seed), self.device))
+        self.collected += 1
+
+    def refresh(self, global_step: int):  # every --context-refresh-every steps, one environment in turn
+        every = self.args.context_refresh_every
+        if every and global_step % every == 0 and self.episodes[0]:  # an unfilled pool stays empty
+            env_id = global_step // every % len(self.envs)
+            self.episodes[env_id].pop(0)
+            self.collect(env_id)
+
+    def sample(self, env_id: int) -> torch.Tensor:
+        pool = self.episodes[env_id]
+        return torch.cat([pool[i] for i in torch.randperm(len(pool))[: self.args.context_episodes].tolist()])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -586,9 +625,8 @@ def policy_loss(model: WorldModel, weights, zs, scale: RunningScale, args: Args)
 
 
 def update(model, hypernet, optimizers, scale, layout, n_wm, obs, action, reward, context, discount, args: Args) -> dict:
-    """Pass 1 (context None): plain TD-MPC2 on the base. Pass 2: CLAW's update, hypernet optimiser only."""
     wm_optimizer, pi_optimizer, hyper_optimizer = optimizers
-    base_pass = context is None
+    base_pass = context is None  # pass 1: plain TD-MPC2 on the base; pass 2: CLAW's update, hypernet optimiser only
     model.train()
     # phase 1: world-model base slice (pass 1) or hypernet (pass 2) on the world-model loss + adapter penalty
     phi = None if base_pass else hypernet(context)
@@ -635,11 +673,11 @@ def make_optimizers(model: WorldModel, hypernet: nn.Module, args: Args):
 # ---------------------------------------------------------------------------------------------
 # Persistence
 # ---------------------------------------------------------------------------------------------
-def save_checkpoint(path, global_step, train_pass, model, hypernet, optimizers, scale, replay, contexts, args: Args):
+def save_checkpoint(path, global_step, train_pass, model, hypernet, optimizers, scale, replay, pool, args: Args):
     state = {
         "global_step": global_step, "pass": train_pass, "args": vars(args), "model": model.state_dict(), "hypernet": hypernet.state_dict(),
         "optimizers": [opt.state_dict() for opt in optimizers], "scale": scale.value.cpu(),
-        "replay": replay.state_dict() if replay is not None else None, "contexts": [c.cpu() for c in contexts],
+        "replay": replay.state_dict() if replay is not None else None, "contexts": (pool.episodes, pool.collected),
         "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
                 "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None},
     }
@@ -721,7 +759,7 @@ def main(args: Args):
     validate_args(args)
     if args.eval_only:  # architecture and family come from the checkpoint
         saved = torch.load(args.checkpoint, map_location="cpu", weights_only=False)["args"]
-        for key in ("family", "model_size", "rank", "num_bins", "vmin", "vmax", "horizon", "discount", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim"):
+        for key in ("family", "model_size", "rank", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim"):
             setattr(args, key, saved[key])
     random.seed(args.seed)
     np.random.seed(args.seed)
@@ -764,10 +802,11 @@ def main(args: Args):
     scale = RunningScale(args.tau, device)
     replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
-    global_step, train_pass, contexts = 0, 0, []
+    global_step, train_pass = 0, 0
+    pool = ContextPool([make_env(args.family, CHEETAH, seed=args.seed + 200)], args, device)  # pass 2: cheetah (index 0) only
     if args.resume:
         state = load_checkpoint(args.resume, model, hypernet, optimizers, scale, replay, restore_rng=True)
-        contexts = [c.to(device) for c in state["contexts"]]
+        pool.episodes, pool.collected = [[e.to(device) for e in p] for p in state["contexts"][0]], state["contexts"][1]
         global_step, train_pass = state["global_step"], state["pass"]
         print(f"resumed from {args.resume} at step {global_step} in pass {train_pass}", flush=True)
         if train_pass == 2:
@@ -781,9 +820,9 @@ def main(args: Args):
             train_pass, rollout_env = train_pass + 1, None
             env_id = WALKER if train_pass == 1 else CHEETAH
             env = envs[env_id]
-            if train_pass == 2:  # contexts holds cheetah's pi_con episodes only, at index CHEETAH = 0
+            if train_pass == 2:  # the base freezes; the context pool fixes the standardisation
                 model.requires_grad_(False)
-                contexts = [context_tensor(collect_episodes(env, args.context_buffer_episodes, seed=args.seed + 100 + env_id), device)]
+                pool.fill(hypernet.encoder)
             # update buffer: random-action prefill, whole episodes of this pass's environment
             episodes_per_env = max(1, math.ceil(seed_steps / (n_envs * ep_len)))  # as CLAW's, per environment
             for _ in range(episodes_per_env):
@@ -798,20 +837,20 @@ def main(args: Args):
             print(f"pass {train_pass}: prefilled up to step {global_step}; {burst} burst updates", flush=True)
             for _ in range(burst):
                 update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(env_id, args.batch_size),
-                       sample_context(contexts, env_id, args.context_batch_size) if train_pass == 2 else None, discount, args)
+                       pool.sample(env_id) if train_pass == 2 else None, discount, args)
             continue
         if rollout_env is None:  # a pass begins or a killed run continues: (re)start this pass's rollout
             rollout_env = WALKER if train_pass == 1 else CHEETAH
             obs, _ = envs[rollout_env].reset()
+            rollout_context = pool.sample(rollout_env) if train_pass == 2 else None  # one context per episode, as at test time
             first, episode_return, prev_mean = True, 0.0, None
         # update the base (pass 1) or the hypernet (pass 2) on this pass's environment
         k = rollout_env
         info = update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(k, args.batch_size),
-                      sample_context(contexts, k, args.context_batch_size) if train_pass == 2 else None, discount, args)
+                      pool.sample(k) if train_pass == 2 else None, discount, args)
         # plan and act: pass 1 with the plain base, pass 2 with freshly generated adapters
         with torch.no_grad():
-            context = sample_context(contexts, rollout_env, args.context_batch_size) if train_pass == 2 else None
-            weights = model.base_weights() if train_pass == 1 else adapted_weights(model, hypernet(context), layout)
+            weights = model.base_weights() if train_pass == 1 else adapted_weights(model, hypernet(rollout_context), layout)
         action, prev_mean = plan(model, weights, torch.as_tensor(obs, dtype=torch.float32, device=device),
                                  None if first else prev_mean, discount, args, explore=True)
         action = action.cpu().numpy()
@@ -824,7 +863,9 @@ def main(args: Args):
             writer.add_scalar("charts/episodic_success", float(step_info.get("success", 0.0)), global_step)
             writer.add_scalar(f"charts/env{rollout_env}/episodic_return", episode_return, global_step)
             obs, _ = envs[rollout_env].reset()
+            rollout_context = pool.sample(rollout_env) if train_pass == 2 else None
             first, episode_return = True, 0.0
+        pool.refresh(global_step)
         if global_step % args.log_every == 0 or global_step == total_timesteps:
             sps = int((global_step - start_step) / (time.time() - start_time))
             for key, value in info.items():
@@ -835,8 +876,8 @@ def main(args: Args):
                   f"adapter_norm {float(info['adapter_norm']):.3f} | SPS {sps}", flush=True)
             writer.flush()
         if global_step % args.checkpoint_every == 0:
-            save_checkpoint(checkpoint_path, global_step, train_pass, model, hypernet, optimizers, scale, replay, contexts, args)
-    save_checkpoint(checkpoint_path, global_step, train_pass, model, hypernet, optimizers, scale, replay, contexts, args)
+            save_checkpoint(checkpoint_path, global_step, train_pass, model, hypernet, optimizers, scale, replay, pool, args)
+    save_checkpoint(checkpoint_path, global_step, train_pass, model, hypernet, optimizers, scale, replay, pool, args)
     print(f"saved {checkpoint_path}", flush=True)
     if args.evaluate_after_training:
         evaluate(model, hypernet, layout, discount, writer, device, args)

@@ -8,12 +8,16 @@ from the context's rewards. This script draws several 3-episode random-policy co
   distance form        the candidate goal whose distance to the tracked position best
                        rank-correlates (negatively) with reward: an upper bound that knows the
                        reward falls with that distance
-  learned encoder      CLAW's own context encoder (h_emb, mean pool, h_con, from
-                       claw_tdmpc2.py) plus a linear head, trained supervised on the goal label
-                       from separate contexts: can the architecture extract the goal at all?
+  learned encoder      CLAW's own context encoder (standardisation, h_emb, mean pool, h_con,
+                       from claw_tdmpc2.py) plus a linear head, trained supervised on the goal label
+                       with contexts drawn as pretraining draws them (--context-episodes whole
+                       episodes from a pool of --probe-pool per goal, refreshed by one episode per
+                       goal every --probe-refresh steps, or fixed with 0): can the architecture
+                       extract the goal at all, and does a fixed pool let it memorise instead?
+                       Reports test hits and the u_con between/within-goal ratio on the test contexts.
 The tracked position is the hand for Reach and the object for Push.
 
-Usage: python benchmarks/context_identifiability.py [--family reach] [--draws 6] [--probe-pool 10]
+Usage: python benchmarks/context_identifiability.py [--family reach] [--draws 6] [--probe-refresh 20]
 """
 from __future__ import annotations
 
@@ -29,6 +33,7 @@ import scipy.stats  # noqa: E402
 import torch  # noqa: E402
 
 import claw_tdmpc2 as claw  # noqa: E402
+from benchmarks.inspect_adapters import between_within  # noqa: E402
 
 from common.context import collect_episodes  # noqa: E402
 from common.envs import env_param, make_env, num_envs  # noqa: E402
@@ -55,27 +60,32 @@ def nearest_centroid_accuracy(features: np.ndarray, labels: np.ndarray) -> int:
     return hits
 
 
-def train_encoder_probe(train: list, train_labels, test: list, test_labels, steps: int, seed: int = 0,
-                        resample: int | None = None) -> int:
-    """Fit claw.ContextEncoder + a linear goal head on `train` contexts (tensors [N, 2*obs+act+1]);
-    return how many `test` contexts it classifies correctly. With `resample`, every step feeds a
-    fresh random `resample` rows of each training tensor, as pretraining samples its context buffer."""
+def train_encoder_probe(draw, labels, test: list, test_labels, steps: int, seed: int = 0,
+                        statistics: torch.Tensor | None = None) -> tuple[int, float]:
+    """Fit claw.ContextEncoder + a linear goal head; step t trains on the contexts `draw(t)` returns (tensors
+    [N, 2*obs+act+1], one per entry of `labels`). `statistics`: rows that fix the standardisation, as the
+    initial context pool does in pretraining. Returns (test contexts classified correctly, u_con ratio
+    between/within goals on the test contexts)."""
     torch.manual_seed(seed)
     args = claw.Args()
-    encoder = claw.ContextEncoder(train[0].shape[1], args)
-    head = torch.nn.Linear(args.context_dim, int(max(train_labels)) + 1)
+    encoder = claw.ContextEncoder(test[0].shape[1], args)
+    if statistics is not None:
+        encoder.set_statistics(statistics)
+    head = torch.nn.Linear(args.context_dim, int(max(labels)) + 1)
     optimizer = torch.optim.Adam([*encoder.parameters(), *head.parameters()], lr=args.hypernet_lr)
-    labels = torch.as_tensor(train_labels)
-    for _ in range(steps):
-        batch = [c[torch.randint(len(c), (resample,))] for c in train] if resample else train
-        logits = head(torch.stack([encoder(c) for c in batch]))
-        loss = torch.nn.functional.cross_entropy(logits, labels)
+    targets = torch.as_tensor(labels)
+    for step in range(steps):
+        loss = torch.nn.functional.cross_entropy(head(torch.stack([encoder(c) for c in draw(step)])), targets)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
     with torch.no_grad():
-        predicted = head(torch.stack([encoder(c) for c in test])).argmax(1).numpy()
-    return int((predicted == np.asarray(test_labels)).sum())
+        embeddings = [encoder(c) for c in test]
+        predicted = head(torch.stack(embeddings)).argmax(1).numpy()
+    index = {}  # (label, k-th context of that label) -> u_con
+    for label, u_con in zip(test_labels, embeddings):
+        index[int(label), sum(1 for key in index if key[0] == label)] = u_con
+    return int((predicted == np.asarray(test_labels)).sum()), between_within(index)[2]
 
 
 def main():
@@ -83,17 +93,16 @@ def main():
     parser.add_argument("--family", choices=sorted(TRACKED_SLICE), default="reach")
     parser.add_argument("--draws", type=int, default=6, help="contexts per goal")
     parser.add_argument("--context-episodes", type=int, default=3)
-    parser.add_argument("--probe-draws", type=int, default=8, help="training contexts per goal for the learned probe")
-    parser.add_argument("--probe-steps", type=int, default=500)
-    parser.add_argument("--probe-pool", type=int, default=0,
-                        help="instead of fixed contexts, train on 256-transition resamples of a pool of this many "
-                             "pi_con episodes per goal (pretraining's context buffer holds 10)")
+    parser.add_argument("--probe-steps", type=int, default=3000)
+    parser.add_argument("--probe-pool", type=int, default=20, help="pi_con episodes per goal the probe draws from (as --context-pool-episodes)")
+    parser.add_argument("--probe-refresh", type=int, default=20,
+                        help="steps between replacing each goal's oldest pool episode by a fresh one; 0: a fixed pool")
     opts = parser.parse_args()
 
     n = num_envs(opts.family)
     goals = np.array([env_param(opts.family, g) for g in range(n)])
-    labels, means, slopes, distance_hits, tensors = [], [], [], 0, []
-    probe_train, probe_labels = [], []
+    labels, means, slopes, distance_hits, tensors, pools = [], [], [], 0, [], []
+    pool_size = opts.probe_pool + (opts.probe_steps // opts.probe_refresh if opts.probe_refresh else 0)
     for g in range(n):
         env = make_env(opts.family, g, seed=0)
         for draw in range(opts.draws):
@@ -106,13 +115,8 @@ def main():
             means.append(mean)
             slopes.append(slope)
             tensors.append(claw.context_tensor(context, "cpu"))
-        if opts.probe_pool:  # one pool per goal, presented probe_draws times per step
-            pool = claw.context_tensor(collect_episodes(env, opts.probe_pool, seed=10**6 + 1000 * g), "cpu")
-            probe_train += [pool] * opts.probe_draws
-            probe_labels += [g] * opts.probe_draws
-        for draw in range(0 if opts.probe_pool else opts.probe_draws):  # disjoint seeds: never a test context
-            probe_train.append(claw.context_tensor(collect_episodes(env, opts.context_episodes, seed=10**6 + 1000 * g + draw), "cpu"))
-            probe_labels.append(g)
+        pool = collect_episodes(env, pool_size, seed=10**6 + 1000 * g)  # another seed range: never a test context
+        pools.append(torch.split(claw.context_tensor(pool, "cpu"), np.bincount(pool["episode"]).tolist()))
         start = context["obs"][0, TRACKED_SLICE[opts.family]]
         print(f"goal {g} {goals[g]}: distance from start {np.linalg.norm(goals[g] - start):.3f}, "
               f"mean reward (last draw) {mean[0]:.3f}, position range {np.ptp(position, 0).round(3)}")
@@ -121,10 +125,15 @@ def main():
     print(f"mean reward:          {nearest_centroid_accuracy(np.array(means), labels)}/{total}")
     print(f"+ reward~position:    {nearest_centroid_accuracy(np.c_[np.array(means), np.array(slopes)], labels)}/{total}")
     print(f"distance form (bound): {distance_hits}/{total}")
-    hits = train_encoder_probe(probe_train, probe_labels, tensors, labels, opts.probe_steps,
-                               resample=256 if opts.probe_pool else None)
-    source = f"256-transition resamples of a {opts.probe_pool}-episode pool" if opts.probe_pool else "fixed training contexts"
-    print(f"learned encoder:      {hits}/{total} ({opts.probe_draws} {source} per goal and step, {opts.probe_steps} Adam steps)")
+    def draw(step):  # one context per goal: whole episodes from the pool's current window
+        start = step // opts.probe_refresh if opts.probe_refresh else 0
+        return [torch.cat([pool[start + i] for i in torch.randperm(opts.probe_pool)[: opts.context_episodes].tolist()]) for pool in pools]
+
+    initial = torch.cat([episode for pool in pools for episode in pool[: opts.probe_pool]])
+    hits, ratio = train_encoder_probe(draw, list(range(n)), tensors, labels, opts.probe_steps, statistics=initial)
+    source = f"refreshed every {opts.probe_refresh} steps" if opts.probe_refresh else "fixed"
+    print(f"learned encoder:      {hits}/{total}, u_con ratio other/same goal {ratio:.2f} ({opts.probe_pool}-episode pool per goal, "
+          f"{source}, {opts.probe_steps} Adam steps)")
 
 
 if __name__ == "__main__":

@@ -61,7 +61,7 @@ SCALES = {
         "exp3_sizes": ("I",), "exp4_size": "I", "exp4_ranks": (1, 2),
         "common": ["--total-timesteps", "620", "--seed-steps", "100", "--burst-updates", "2", "--batch-size", "16",
                    "--num-samples", "16", "--num-elites", "4", "--num-pi-trajs", "2", "--iterations", "1",
-                   "--context-buffer-episodes", "1", "--context-batch-size", "16", "--context-episodes", "1",
+                   "--context-pool-episodes", "2", "--context-episodes", "1",
                    "--eval-episodes", "1", "--log-every", "10"],
         "exp12": ["--online-eval-steps", "100", "--offline-adapt-steps", "0", "1"],
         "exp345": ["--online-eval-steps", "100"],

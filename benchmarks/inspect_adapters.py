@@ -1,11 +1,15 @@
 """Does a trained CLAW hypernetwork tell the environments apart? (context identifiability)
 
-For each environment of the checkpoint's family, collect pi_con context twice (two seeds) and
-compare the hypernetwork's context embeddings u_con and generated adapters phi: the distance
-between two contexts of the *same* environment (noise) against the distance between
-*different* environments (signal). A ratio near 1 means the adapters do not depend on the task.
+For each environment of the checkpoint's family, draw several contexts and compare the hypernetwork's
+context embeddings u_con and generated adapters phi: the distance between two contexts of the *same*
+environment (noise) against the distance between *different* environments (signal). A ratio near 1
+means the adapters do not depend on the task. Two sources side by side:
+  fresh          new pi_con contexts (--episodes each), as at test time: what adaptation can use;
+  training pool  draws from the checkpoint's own pretraining context pool, as pretraining draws them.
+A training ratio far above the fresh one means the hypernetwork keys on which episodes the pool
+holds (a shortcut that does not exist at test time), not on the environment.
 
-    python benchmarks/inspect_adapters.py runs/<run>/checkpoint.pt [--episodes 3]
+    python benchmarks/inspect_adapters.py runs/<run>/checkpoint.pt [--episodes 3] [--draws 4]
 """
 from __future__ import annotations
 
@@ -25,10 +29,39 @@ from common.context import collect_episodes  # noqa: E402
 from common.envs import episode_length, make_env, num_envs  # noqa: E402
 
 
+def between_within(values: dict) -> tuple[float, float, float]:
+    """values[(env, draw)] -> vector. Mean distance between two draws of one environment, mean
+    distance between two environments (same draw index), and their ratio."""
+    envs, draws = sorted({e for e, _ in values}), sorted({d for _, d in values})
+    same = torch.stack([(values[e, a] - values[e, b]).norm() for e in envs for a, b in itertools.combinations(draws, 2)]).mean()
+    other = torch.stack([(values[a, d] - values[b, d]).norm() for a, b in itertools.combinations(envs, 2) for d in draws]).mean()
+    return float(same), float(other), float(other / same.clamp_min(1e-12))
+
+
+def input_sensitivity(encoder, contexts: list, obs_dim: int, act_dim: int) -> dict:
+    """Which parts of a transition (s, a, r, s') the context embedding responds to: the RMS entry of the
+    Jacobian of u_con with respect to the *standardised* input features (so feature scales do not
+    matter), per group, over the features that vary in the contexts (constant ones carry nothing)."""
+    rows = torch.cat(contexts)
+    varying = rows.std(0) > 1e-6
+    groups = {"s": slice(0, obs_dim), "a": slice(obs_dim, obs_dim + act_dim), "r": slice(obs_dim + act_dim, obs_dim + act_dim + 1),
+              "s'": slice(obs_dim + act_dim + 1, None)}
+    squares = torch.zeros(rows.shape[1])
+    for context in contexts:
+        standardised = ((context - encoder.feature_mean) / encoder.feature_std).requires_grad_(True)
+        jacobian = torch.autograd.functional.jacobian(
+            lambda x: encoder.context(encoder.embed(x).mean(0)), standardised)  # [context_dim, N, features]
+        squares += jacobian.pow(2).sum((0, 1)) * len(context)  # N x: the per-row pooling weight is 1/N
+    rms = (squares / (len(contexts) * encoder.context[-1].out_features)).sqrt()
+    return {name: float(rms[group][varying[group]].pow(2).mean().sqrt()) if varying[group].any() else float("nan")
+            for name, group in groups.items()}
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint")
-    parser.add_argument("--episodes", type=int, default=3, help="pi_con episodes per context")
+    parser.add_argument("--episodes", type=int, default=3, help="pi_con episodes per fresh context")
+    parser.add_argument("--draws", type=int, default=4, help="contexts per environment and source")
     cli = parser.parse_args(argv)
     state = torch.load(cli.checkpoint, map_location="cpu", weights_only=False)
     args = claw.Args(**{k: v for k, v in state["args"].items() if k in claw.Args.__dataclass_fields__})
@@ -39,30 +72,37 @@ def main(argv=None):
     hypernet = claw.Hypernet(2 * obs_dim + act_dim + 1, claw.lora_template(layout, n_wm + n_pi), args)
     hypernet.load_state_dict(state["hypernet"])
     model.load_state_dict(state["model"])
-    embeddings, adapters = {}, {}
-    with torch.no_grad():
-        for env_id in range(num_envs(args.family)):
-            env = make_env(args.family, env_id)
-            for draw in range(2):
-                rows = claw.context_tensor(collect_episodes(env, cli.episodes, seed=1000 * draw + env_id), "cpu")
-                embeddings[env_id, draw] = hypernet.encoder(rows)
-                adapters[env_id, draw] = hypernet(rows)[:n_wm] - hypernet.template[:n_wm]
     n = num_envs(args.family)
-    print(f"{cli.checkpoint}: family {args.family}, size {args.model_size}, rank {args.rank}")
-    phi_norms = torch.stack([(adapters[e, 0] + hypernet.template[:n_wm]).norm() for e in range(n)])
-    print(f"||template (world model)|| = {hypernet.template[:n_wm].norm():.4f}, "
-          f"||phi (world model)|| = {phi_norms.mean():.4f} (template + generated delta, mean over environments)")
-    for name, values in (("u_con", embeddings), ("delta phi (world model)", adapters)):
-        same = torch.stack([(values[e, 0] - values[e, 1]).norm() for e in range(n)]).mean()
-        other = torch.stack([(values[a, 0] - values[b, 0]).norm() for a, b in itertools.combinations(range(n), 2)]).mean()
-        size = torch.stack([values[e, 0].norm() for e in range(n)]).mean()
-        print(f"{name:24s} mean norm {size:.4f} | same env, other context {same:.2e} | other env {other:.2e} | "
-              f"ratio {other / same.clamp_min(1e-12):.2f}")
+    fresh = {}
+    for env_id in range(n):
+        env = make_env(args.family, env_id)
+        for draw in range(cli.draws):
+            fresh[env_id, draw] = claw.context_tensor(collect_episodes(env, cli.episodes, seed=1000 * draw + env_id), "cpu")
+    pool = claw.ContextPool([None] * n, args, "cpu")
+    pool.episodes = state["contexts"][0]
+    torch.manual_seed(0)
+    training = {(env_id, draw): pool.sample(env_id) for env_id in range(n) for draw in range(cli.draws)}
+    print(f"{cli.checkpoint}: family {args.family}, size {args.model_size}, rank {args.rank}; "
+          f"{cli.draws} contexts per environment and source")
+    with torch.no_grad():
+        phi_norm = torch.stack([hypernet(fresh[e, 0])[:n_wm].norm() for e in range(n)]).mean()
+        print(f"||template (world model)|| = {hypernet.template[:n_wm].norm():.4f}, "
+              f"||phi (world model)|| = {phi_norm:.4f} (template + generated delta, mean over environments)")
+        for source, contexts in (("fresh", fresh), ("training pool", training)):
+            embeddings = {key: hypernet.encoder(rows) for key, rows in contexts.items()}
+            adapters = {key: hypernet(rows)[:n_wm] - hypernet.template[:n_wm] for key, rows in contexts.items()}
+            for name, values in (("u_con", embeddings), ("delta phi (world model)", adapters)):
+                same, other, ratio = between_within(values)
+                size = torch.stack([v.norm() for v in values.values()]).mean()
+                print(f"{source:13s} {name:24s} mean norm {size:.4f} | same env, other context {same:.2e} | "
+                      f"other env {other:.2e} | ratio {ratio:.2f}")
+    print("u_con sensitivity per standardised input feature (RMS of d u_con / d x over the fresh contexts' varying "
+          "features): " + ", ".join(f"{k} {v:.2e}" for k, v in input_sensitivity(hypernet.encoder, list(fresh.values()), obs_dim, act_dim).items()))
     # where the world-model loss's gradient goes inside the hypernetwork, on the run's own replay
     replay = claw.ReplayBuffer(state["replay"]["size"], obs_dim, act_dim, n, args.horizon, "cpu")
     replay.load_state_dict(state["replay"])
     torch.manual_seed(0)
-    phi = hypernet(claw.sample_context(list(state["contexts"]), 0, args.context_batch_size))
+    phi = hypernet(training[0, 0])
     batch, weights = replay.sample(0, args.batch_size), claw.adapted_weights(model, phi, layout)
     discount = claw.default_discount(args, episode_length(args.family))
 

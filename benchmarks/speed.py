@@ -58,7 +58,7 @@ def measure(size: str, family: str, steps: int, rank: int) -> dict:
 
     def update():
         claw.update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(0, args.batch_size),
-                    claw.sample_context(contexts, 0, args.context_batch_size), discount, args)
+                    contexts[0], discount, args)
 
     def adapt():
         with torch.no_grad():
@@ -70,7 +70,7 @@ def measure(size: str, family: str, steps: int, rank: int) -> dict:
     def loop_step():  # the body of the pretraining loop
         update()
         with torch.no_grad():
-            w = claw.adapted_weights(model, hypernet(claw.sample_context(contexts, 0, args.context_batch_size)), layout)
+            w = claw.adapted_weights(model, hypernet(contexts[0]), layout)
         action, state["mean"] = claw.plan(model, w, torch.as_tensor(state["obs"]), None if state["first"] else state["mean"],
                                           discount, args, explore=True)
         next_obs, reward, terminated, truncated, _ = env.step(action.numpy())

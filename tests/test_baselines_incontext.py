@@ -12,7 +12,7 @@ import posthoc_tdmpc2 as posthoc
 from test_claw import synthetic_batch
 
 TINY = dict(model_size="I", seed_steps=100, burst_updates=5, batch_size=16, num_samples=32, num_elites=8,
-            num_pi_trajs=4, iterations=2, context_buffer_episodes=1, context_batch_size=32, context_episodes=1,
+            num_pi_trajs=4, iterations=2, context_pool_episodes=2, context_episodes=1,
             online_eval_steps=100, eval_episodes=1, log_every=20, checkpoint_every=10_000, cuda=False,
             evaluate_after_training=False)
 
@@ -224,14 +224,14 @@ def test_posthoc_resume_across_pass_boundary_freezes_base_and_evaluates_cheetah(
     assert "pass 1: prefilled up to step 500" in out and "step 550/1100" in out and "pass 2" not in out
     checkpoint = os.path.join(args.run_dir, "checkpoint.pt")
     pass1 = torch.load(checkpoint, weights_only=False)
-    assert (pass1["global_step"], pass1["pass"], pass1["contexts"]) == (550, 1, [])
-    # resume: pass 2 with its own cheetah prefill and context buffer, then cheetah-only evaluation
+    assert (pass1["global_step"], pass1["pass"], pass1["contexts"]) == (550, 1, ([[]], 0))
+    # resume: pass 2 with its own cheetah prefill and context pool, then cheetah-only evaluation
     posthoc.main(dataclasses.replace(args, resume=checkpoint, run_dir=None, evaluate_after_training=True, online_eval_steps=500))
     out = capsys.readouterr().out
     assert "at step 550 in pass 1" in out and "pass 2: prefilled up to step 1050" in out and "step 1100/1100" in out
     assert out.count("eval env") == 1 and "eval env 0:" in out
     pass2 = torch.load(checkpoint, weights_only=False)
-    assert (pass2["global_step"], pass2["pass"], len(pass2["contexts"])) == (1100, 2, 1)
+    assert (pass2["global_step"], pass2["pass"], len(pass2["contexts"][0]), len(pass2["contexts"][0][0])) == (1100, 2, 1, 2)
     assert pass2["replay"]["size"] == 1100 and len(pass2["replay"]["starts"][posthoc.CHEETAH]) > 0
     for key, value in pass1["model"].items():  # every base parameter and the target critic, bit for bit
         assert torch.equal(value, pass2["model"][key]), key

@@ -123,7 +123,7 @@ def test_encoder_probe_learns_a_goal_that_shifts_the_reward():
 
     train = contexts(0, 4) + contexts(1, 4)
     test = contexts(0, 3) + contexts(1, 3)
-    hits = context_identifiability.train_encoder_probe(train, [0] * 4 + [1] * 4, test, [0] * 3 + [1] * 3, steps=60)
-    assert hits == 6
-    pools = [torch.cat(contexts(0, 4)), torch.cat(contexts(1, 4))]  # resampled rows, as from a context buffer
-    assert context_identifiability.train_encoder_probe(pools, [0, 1], test, [0] * 3 + [1] * 3, steps=60, resample=16) == 6
+    draw = lambda step: [train[step % 4], train[4 + step % 4]]  # noqa: E731
+    hits, ratio = context_identifiability.train_encoder_probe(draw, [0, 1], test, [0] * 3 + [1] * 3, steps=60,
+                                                              statistics=torch.cat(train))
+    assert hits == 6 and ratio > 1.5
