@@ -127,7 +127,7 @@ class Args:
     # evaluation (paper Exp 1 / Exp 2)
 
     context_episodes: int = 3
-    """pi_con episodes per context: per test environment, and per hypernet pass in pretraining"""
+    """pi_con episodes per context: each test environment's and (scripts with a hypernetwork) each pretraining draw"""
     online_eval_steps: int = 30_000
     """Exp 1 test-time agent steps per environment"""
     eval_episodes: int = 10
@@ -570,7 +570,8 @@ class ContextPool:
             encoder.set_statistics(torch.cat(sum(self.episodes, [])))
 
     def collect(self, env_id: int):
-        seed = 1_000_000 * self.args.seed + self.collected  # a new episode every time, never an evaluation seed
+        # a new episode every time, never an evaluation seed (those lie below --seed + 50,000)
+        seed = (1_000_000 * self.args.seed if self.args.seed > 0 else 10**9) + self.collected
         self.episodes[env_id].append(context_tensor(collect_episodes(self.envs[env_id], 1, seed=seed), self.device))
         self.collected += 1
 

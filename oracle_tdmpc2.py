@@ -114,7 +114,7 @@ class Args:
     # evaluation (paper Exp 1 / Exp 2)
 
     context_episodes: int = 3
-    """pi_con episodes collected per test environment"""
+    """pi_con episodes per context: each test environment's and (scripts with a hypernetwork) each pretraining draw"""
     online_eval_steps: int = 30_000
     """Exp 1 test-time agent steps per environment (no adaptation)"""
     offline_adapt_steps: tuple[int, ...] = (0, 1, 100, 1000, 10000)
