@@ -20,6 +20,7 @@ import math
 import os
 import random
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Literal, Optional
 
@@ -33,6 +34,8 @@ from torch.utils.tensorboard import SummaryWriter
 from common.context import collect_episodes
 from common.envs import FAMILIES, episode_length, make_env, num_envs
 from common.evaluation import mean_ci, offline_adaptation, online_adaptation
+from common.runs import (adopt_args, check_budget, check_counts, describe_device, hyperparameter_text, mismatch, progress_bar,
+                         progress_text, random_prefill, read_checkpoint, resolve_budget)
 
 # Paper Table "Per-family pretraining setup" (cheetah_walker: Exp 3-5, 250k per task).
 DEFAULT_TOTAL_TIMESTEPS = {"walker": 600_000, "reach": 50_000, "push": 300_000, "go1": 1_000_000, "cheetah_walker": 500_000}
@@ -53,7 +56,7 @@ MODEL_SIZES = {
 class Args:
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment"""
-    family: str = "reach"
+    family: Literal["walker", "reach", "push", "go1", "cheetah_walker"] = "reach"
     """environment family: walker, reach, push, go1, cheetah_walker"""
     seed: int = 1
     """seed of the experiment"""
@@ -141,16 +144,19 @@ class Args:
     log_every: int = 1000
     """agent steps between progress lines"""
     checkpoint_every: int = 50_000
+    checkpoint_minutes: float = 10.0
+    """also checkpoint after this many minutes of wall-clock since the last one (and after the prefill and burst)"""
     checkpoint: Optional[str] = None
     """checkpoint to evaluate with --eval-only"""
     eval_only: bool = False
     resume: Optional[str] = None
-    """checkpoint of a killed run to continue"""
+    """checkpoint of a killed run to continue with its saved arguments (only --threads, --cuda, --run-dir, --log-every,
+    --checkpoint-every, --checkpoint-minutes may be given anew)"""
     run_dir: Optional[str] = None
     """default runs/{family}__{exp_name}__{seed}__{unix time}"""
 
 
-def validate_args(args: Args):
+def validate_args(args: Args) -> tuple[int, int, int]:
     if args.family not in FAMILIES:
         raise SystemExit(f"error: unknown family {args.family!r}; valid families: {', '.join(FAMILIES)}")
     if not 0 < args.num_elites <= args.num_samples or not 0 <= args.num_pi_trajs < args.num_samples:
@@ -164,6 +170,17 @@ def validate_args(args: Args):
         raise SystemExit(f"error: need 1 <= --context-episodes ({args.context_episodes}) <= --context-pool-episodes ({args.context_pool_episodes}) and --context-refresh-every >= 0")
     if args.eval_only and args.checkpoint is None:
         raise SystemExit("error: --eval-only needs --checkpoint PATH")
+    if args.eval_only and args.resume:
+        raise SystemExit("error: --eval-only and --resume exclude each other")
+    check_counts(args, ("total_timesteps", "batch_size", "horizon", "iterations", "num_samples", "log_every", "checkpoint_every",
+                        "checkpoint_minutes", "threads", "rank", "context_episodes", "eval_episodes", "context_dim", "embed_hidden",
+                        "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps"))
+    if args.num_bins < 2 or args.vmin >= args.vmax:
+        raise SystemExit(f"error: need --num-bins >= 2 and --vmin < --vmax, got {args.num_bins}, {args.vmin}, {args.vmax}")
+    budget = resolve_budget(args, DEFAULT_TOTAL_TIMESTEPS)  # (total agent steps, --seed-steps, prefill agent steps)
+    if not (args.eval_only or args.dry_run):  # the budget matters only to a training run
+        check_budget(budget[0], budget[2])
+    return budget
 
 
 def default_discount(args: Args, episode_length: int) -> float:
@@ -297,7 +314,7 @@ class WorldModel(nn.Module):
     def __init__(self, obs_dim: int, act_dim: int, model_size: str, args: Args):
         super().__init__()
         encoder_hidden, latent, hidden, num_q = MODEL_SIZES[model_size]
-        self.act_dim, self.num_q, self.args = act_dim, num_q, args
+        self.obs_dim, self.act_dim, self.num_q, self.args = obs_dim, act_dim, num_q, args
         self.encoder = MLP([obs_dim, *encoder_hidden, latent], simnorm_out=True)
         self.dynamics = MLP([latent + act_dim, hidden, hidden, latent], simnorm_out=True)
         self.reward = MLP([latent + act_dim, hidden, hidden, args.num_bins])
@@ -557,7 +574,7 @@ class ContextPool:
         self.envs, self.args, self.device, self.episodes, self.collected = envs, args, device, [[] for _ in envs], 0
 
     def fill(self, encoder: nn.Module):  # paper Alg. 1, lines 1-2; the initial pool fixes the standardisation
-        for _ in range(self.args.context_pool_episodes):
+        for _ in progress_bar(range(self.args.context_pool_episodes), desc="context pool"):
             for env_id in range(len(self.envs)):
                 self.collect(env_id)
         if self.args.context_standardize:
@@ -662,11 +679,12 @@ def make_optimizers(model: WorldModel, hypernet: nn.Module, args: Args):
 # ---------------------------------------------------------------------------------------------
 # Persistence
 # ---------------------------------------------------------------------------------------------
-def save_checkpoint(path, global_step, model, hypernet, optimizers, scale, replay, pool, args: Args):
+def save_checkpoint(path, global_step, burst_left, model, hypernet, optimizers, scale, replay, pool, args: Args):
     state = {
-        "global_step": global_step, "args": vars(args), "model": model.state_dict(), "hypernet": hypernet.state_dict(),
+        "global_step": global_step, "burst_left": burst_left, "args": vars(args), "model": model.state_dict(), "hypernet": hypernet.state_dict(),
         "optimizers": [opt.state_dict() for opt in optimizers], "scale": scale.value.cpu(),
         "replay": replay.state_dict() if replay is not None else None, "contexts": (pool.episodes, pool.collected),
+        "method": os.path.basename(__file__), "dims": (model.obs_dim, model.act_dim),  # checked by read_checkpoint
         "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
                 "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None},
     }
@@ -675,9 +693,12 @@ def save_checkpoint(path, global_step, model, hypernet, optimizers, scale, repla
 
 
 def load_checkpoint(path, model, hypernet, optimizers=None, scale=None, replay=None, restore_rng: bool = False):
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    model.load_state_dict(state["model"])
-    hypernet.load_state_dict(state["hypernet"])
+    state = read_checkpoint(path, os.path.basename(__file__), model)
+    try:  # one line, not a size-mismatch traceback per tensor
+        model.load_state_dict(state["model"])
+        hypernet.load_state_dict(state["hypernet"])
+    except (KeyError, RuntimeError) as error:
+        raise SystemExit(f"error: {path} does not fit this configuration: {mismatch(error)}") from None
     if optimizers is not None:
         for opt, opt_state in zip(optimizers, state["optimizers"]):
             opt.load_state_dict(opt_state)
@@ -714,11 +735,11 @@ def evaluate(model, hypernet, layout, discount, writer, device, args: Args) -> d
     for env_id in range(num_envs(args.family)):
         env = make_env(args.family, env_id, seed=args.seed + 10_000 + env_id)
         context = collect_episodes(env, args.context_episodes, seed=args.seed + 20_000 + env_id)
-        online = online_adaptation(env, context, adapt, act, args.online_eval_steps, seed=args.seed + 30_000 + env_id)
+        online = online_adaptation(env, context, adapt, act, args.online_eval_steps, seed=args.seed + 30_000 + env_id, desc=f"eval env {env_id} online")
         for record in online:
             writer.add_scalar(f"eval/online/env{env_id}/episodic_return", record["return"], record["step"])
             writer.add_scalar(f"eval/online/env{env_id}/success", record["success"], record["step"])
-        offline = offline_adaptation(env, context, adapt, act, args.eval_episodes, seed=args.seed + 40_000 + env_id)
+        offline = offline_adaptation(env, context, adapt, act, args.eval_episodes, seed=args.seed + 40_000 + env_id, desc=f"eval env {env_id} offline")
         offline_return = float(np.mean([r["return"] for r in offline]))
         writer.add_scalar(f"eval/offline/env{env_id}/episodic_return", offline_return, 0)
         writer.add_scalar(f"eval/offline/env{env_id}/success", float(np.mean([r["success"] for r in offline])), 0)
@@ -745,11 +766,15 @@ def evaluate(model, hypernet, layout, discount, writer, device, args: Args) -> d
 # Main: set-up, context collection, prefill, burst, online pretraining loop, evaluation
 # ---------------------------------------------------------------------------------------------
 def main(args: Args):
+    started = time.time()
     validate_args(args)
-    if args.eval_only:  # architecture and family come from the checkpoint
-        saved = torch.load(args.checkpoint, map_location="cpu", weights_only=False)["args"]
-        for key in ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim"):
-            setattr(args, key, saved[key])
+    purge_step = None
+    if args.resume or args.eval_only:  # the checkpoint's arguments; a flag given explicitly with another value is an error
+        saved = read_checkpoint(args.resume or args.checkpoint, os.path.basename(__file__))
+        architecture = ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim")
+        adopt_args(args, saved["args"], None if args.resume else architecture, args.resume or args.checkpoint)  # --resume: every flag
+        purge_step, saved = saved["global_step"] + 1 if args.resume else None, None  # checkpoints are large: keep only the step
+    total_timesteps, seed_steps, prefill = validate_args(args)
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
@@ -763,8 +788,6 @@ def main(args: Args):
     for env_id, env in enumerate(envs):
         env.action_space.seed(args.seed + env_id)
     obs_dim, act_dim = envs[0].observation_space.shape[0], envs[0].action_space.shape[0]
-    total_timesteps = args.total_timesteps or DEFAULT_TOTAL_TIMESTEPS[args.family]
-    seed_steps = args.seed_steps if args.seed_steps is not None else max(1000, 5 * ep_len)
     discount = default_discount(args, ep_len)
 
     model = WorldModel(obs_dim, act_dim, args.model_size, args).to(device)
@@ -775,12 +798,15 @@ def main(args: Args):
     print(f"hypernetwork parameters: {sum(p.numel() for p in hypernet.parameters())}", flush=True)
     if args.dry_run:
         return
+    print(describe_device(args, device, args.model_size))
+    if not args.eval_only:
+        print(f"budget: {total_timesteps} agent steps: a {prefill}-step random prefill, {args.burst_updates} burst updates, then training", flush=True)
 
     if args.resume and args.run_dir is None:  # keep logging into the interrupted run
         args.run_dir = os.path.dirname(os.path.abspath(args.resume))
     run_dir = args.run_dir or f"runs/{args.family}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    writer = SummaryWriter(run_dir)
-    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in vars(args).items()))
+    writer = SummaryWriter(run_dir, purge_step=purge_step)  # a resumed run replaces the events logged after its checkpoint
+    writer.add_text("hyperparameters", hyperparameter_text(args, total_timesteps=total_timesteps, seed_steps=seed_steps, discount=discount, device=device))
     if args.eval_only:
         load_checkpoint(args.checkpoint, model, hypernet)
         evaluate(model, hypernet, layout, discount, writer, device, args)
@@ -791,38 +817,37 @@ def main(args: Args):
     scale = RunningScale(args.tau, device)
     replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
-    global_step = 0
+    global_step, burst_left, saved_at = 0, args.burst_updates, time.time()
+
+    def save():  # atomic; also right after the prefill and the burst, and every --checkpoint-minutes
+        nonlocal saved_at
+        save_checkpoint(checkpoint_path, global_step, burst_left, model, hypernet, optimizers, scale, replay, pool, args)
+        saved_at = time.time()
+
     pool = ContextPool([make_env(args.family, env_id, seed=args.seed + 200 + env_id) for env_id in range(n_envs)], args, device)
     if args.resume:
         state = load_checkpoint(args.resume, model, hypernet, optimizers, scale, replay, restore_rng=True)
         pool.episodes, pool.collected = [[e.to(device) for e in p] for p in state["contexts"][0]], state["contexts"][1]
-        global_step = state["global_step"]
+        global_step, burst_left = state["global_step"], state.get("burst_left", 0)
         print(f"resumed from {args.resume} at step {global_step}", flush=True)
     else:
         pool.fill(hypernet.encoder)  # pi_con episodes per environment
-        # update buffers: random-action prefill, whole episodes, every environment
-        episodes_per_env = max(1, math.ceil(seed_steps / (n_envs * ep_len)))
-        for env_id, env in enumerate(envs):
-            for _ in range(episodes_per_env):
-                obs, _ = env.reset()
-                done, first = False, True
-                while not done:
-                    action = env.action_space.sample()
-                    next_obs, reward, terminated, truncated, _ = env.step(action)
-                    replay.add(env_id, obs, action, reward, next_obs, first)
-                    obs, first, done, global_step = next_obs, False, terminated or truncated, global_step + 1
-        burst = args.burst_updates
-        print(f"prefilled {global_step} steps; {burst} burst updates", flush=True)
-        for _ in range(burst):
+        global_step += random_prefill(dict(enumerate(envs)), replay, prefill)  # update buffers: every environment
+        save()
+    if burst_left:  # also a run killed during its burst: it resumes from the checkpoint after the prefill
+        print(f"prefilled {global_step} steps; {burst_left} burst updates", flush=True)
+        for _ in progress_bar(range(burst_left), desc="burst"):
             k = random.randrange(n_envs)
             update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(k, args.batch_size),
                    pool.sample(k), discount, args)
+        burst_left = 0
+        save()
 
     rollout_env = random.randrange(n_envs)
     obs, _ = envs[rollout_env].reset()
     rollout_context = pool.sample(rollout_env)  # one context per episode, as at test time
     first, episode_return, prev_mean = True, 0.0, None
-    start_time, start_step = time.time(), global_step
+    start_time, start_step, recent = time.time(), global_step, deque(maxlen=10)  # recent: (return, success) of the last episodes
     while global_step < total_timesteps:
         # update the base and hypernet on a training environment sampled per step
         k = random.randrange(n_envs)
@@ -842,6 +867,7 @@ def main(args: Args):
             writer.add_scalar("charts/episodic_return", episode_return, global_step)
             writer.add_scalar("charts/episodic_success", float(step_info.get("success", 0.0)), global_step)
             writer.add_scalar(f"charts/env{rollout_env}/episodic_return", episode_return, global_step)
+            recent.append((episode_return, float(step_info.get("success", 0.0))))
             rollout_env = random.randrange(n_envs)
             obs, _ = envs[rollout_env].reset()
             rollout_context = pool.sample(rollout_env)
@@ -854,11 +880,11 @@ def main(args: Args):
             writer.add_scalar("charts/q_scale", float(scale.value), global_step)
             writer.add_scalar("charts/SPS", sps, global_step)
             print(f"step {global_step}/{total_timesteps} | wm_loss {float(info['wm_loss']):.3f} | "
-                  f"adapter_norm {float(info['adapter_norm']):.3f} | SPS {sps}", flush=True)
+                  f"adapter_norm {float(info['adapter_norm']):.3f} | {progress_text(global_step, total_timesteps, start_step, start_time, started, recent, args.family)}", flush=True)
             writer.flush()
-        if global_step % args.checkpoint_every == 0:
-            save_checkpoint(checkpoint_path, global_step, model, hypernet, optimizers, scale, replay, pool, args)
-    save_checkpoint(checkpoint_path, global_step, model, hypernet, optimizers, scale, replay, pool, args)
+        if global_step % args.checkpoint_every == 0 or time.time() - saved_at > 60 * args.checkpoint_minutes:
+            save()
+    save()
     print(f"saved {checkpoint_path}", flush=True)
     if args.evaluate_after_training:
         evaluate(model, hypernet, layout, discount, writer, device, args)

@@ -21,6 +21,7 @@ import math
 import os
 import random
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Literal, Optional
 
@@ -34,6 +35,8 @@ from torch.utils.tensorboard import SummaryWriter
 from common.context import collect_episodes
 from common.envs import FAMILIES, episode_length, make_env, num_envs
 from common.evaluation import mean_ci, offline_adaptation, online_adaptation
+from common.runs import (adopt_args, check_budget, check_counts, describe_device, hyperparameter_text, mismatch, progress_bar,
+                         progress_text, random_prefill, read_checkpoint, resolve_budget)
 
 # Paper Table "Per-family pretraining setup" (cheetah_walker: Exp 3-5, 250k per task).
 DEFAULT_TOTAL_TIMESTEPS = {"walker": 600_000, "reach": 50_000, "push": 300_000, "go1": 1_000_000, "cheetah_walker": 500_000}
@@ -54,7 +57,7 @@ MODEL_SIZES = {
 class Args:
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment"""
-    family: str = "reach"
+    family: Literal["walker", "reach", "push", "go1", "cheetah_walker"] = "reach"
     """environment family: walker, reach, push, go1, cheetah_walker"""
     seed: int = 1
     """seed of the experiment"""
@@ -129,23 +132,24 @@ class Args:
     log_every: int = 1000
     """agent steps between progress lines"""
     checkpoint_every: int = 50_000
+    checkpoint_minutes: float = 10.0
+    """also checkpoint after this many minutes of wall-clock since the last one (and after the prefill and burst)"""
     checkpoint: Optional[str] = None
     """checkpoint to evaluate with --eval-only"""
     eval_only: bool = False
     resume: Optional[str] = None
-    """checkpoint of a killed run to continue"""
+    """checkpoint of a killed run to continue with its saved arguments (only --threads, --cuda, --run-dir, --log-every,
+    --checkpoint-every, --checkpoint-minutes may be given anew)"""
     run_dir: Optional[str] = None
     """default runs/{family}__{exp_name}__{seed}__{unix time}"""
 
 
-def validate_args(args: Args):
+def validate_args(args: Args) -> tuple[int, int, int]:
     if args.family not in FAMILIES:
         raise SystemExit(f"error: unknown family {args.family!r}; valid families: {', '.join(FAMILIES)}")
     if not 0 < args.num_elites <= args.num_samples or not 0 <= args.num_pi_trajs < args.num_samples:
         raise SystemExit("error: need 0 < --num-elites <= --num-samples and 0 <= --num-pi-trajs < --num-samples, got "
                          f"{args.num_elites}, {args.num_samples}, {args.num_pi_trajs}")
-    if args.rank <= 0:
-        raise SystemExit(f"error: --rank must be a positive integer, got {args.rank}")
     if any(steps < 0 for steps in args.offline_adapt_steps):
         raise SystemExit(f"error: --offline-adapt-steps must be non-negative, got {args.offline_adapt_steps}")
     for name in ("checkpoint", "resume"):
@@ -154,6 +158,17 @@ def validate_args(args: Args):
             raise SystemExit(f"error: --{name} {path!r} does not exist")
     if args.eval_only and args.checkpoint is None:
         raise SystemExit("error: --eval-only needs --checkpoint PATH")
+    if args.eval_only and args.resume:
+        raise SystemExit("error: --eval-only and --resume exclude each other")
+    check_counts(args, ("total_timesteps", "batch_size", "horizon", "iterations", "num_samples", "log_every", "checkpoint_every",
+                        "checkpoint_minutes", "threads", "rank", "context_episodes", "eval_episodes", "context_dim", "embed_hidden",
+                        "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps"))
+    if args.num_bins < 2 or args.vmin >= args.vmax:
+        raise SystemExit(f"error: need --num-bins >= 2 and --vmin < --vmax, got {args.num_bins}, {args.vmin}, {args.vmax}")
+    budget = resolve_budget(args, DEFAULT_TOTAL_TIMESTEPS)  # (total agent steps, --seed-steps, prefill agent steps)
+    if not (args.eval_only or args.dry_run):  # the budget matters only to a training run
+        check_budget(budget[0], budget[2])
+    return budget
 
 
 def default_discount(args: Args, episode_length: int) -> float:
@@ -285,7 +300,7 @@ class WorldModel(nn.Module):
     def __init__(self, obs_dim: int, act_dim: int, model_size: str, args: Args):
         super().__init__()
         encoder_hidden, latent, hidden, num_q = MODEL_SIZES[model_size]
-        self.act_dim, self.num_q, self.args = act_dim, num_q, args
+        self.obs_dim, self.act_dim, self.num_q, self.args = obs_dim, act_dim, num_q, args
         self.encoder = MLP([obs_dim, *encoder_hidden, latent], simnorm_out=True)
         self.dynamics = MLP([latent + act_dim, hidden, hidden, latent], simnorm_out=True)
         self.reward = MLP([latent + act_dim, hidden, hidden, args.num_bins])
@@ -587,11 +602,12 @@ def make_optimizers(model: WorldModel, args: Args):
 # ---------------------------------------------------------------------------------------------
 # Persistence
 # ---------------------------------------------------------------------------------------------
-def save_checkpoint(path, global_step, model, optimizers, scale, replay, args: Args):
+def save_checkpoint(path, global_step, burst_left, model, optimizers, scale, replay, args: Args):
     state = {
-        "global_step": global_step, "args": vars(args), "model": model.state_dict(),
+        "global_step": global_step, "burst_left": burst_left, "args": vars(args), "model": model.state_dict(),
         "optimizers": [opt.state_dict() for opt in optimizers], "scale": scale.value.cpu(),
         "replay": replay.state_dict() if replay is not None else None,
+        "method": os.path.basename(__file__), "dims": (model.obs_dim, model.act_dim),  # checked by read_checkpoint
         "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
                 "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None},
     }
@@ -600,8 +616,11 @@ def save_checkpoint(path, global_step, model, optimizers, scale, replay, args: A
 
 
 def load_checkpoint(path, model, optimizers=None, scale=None, replay=None, restore_rng: bool = False):
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    model.load_state_dict(state["model"])
+    state = read_checkpoint(path, os.path.basename(__file__), model)
+    try:  # one line, not a size-mismatch traceback per tensor
+        model.load_state_dict(state["model"])
+    except (KeyError, RuntimeError) as error:
+        raise SystemExit(f"error: {path} does not fit this configuration: {mismatch(error)}") from None
     if optimizers is not None:
         for opt, opt_state in zip(optimizers, state["optimizers"]):
             opt.load_state_dict(opt_state)
@@ -649,14 +668,14 @@ def evaluate(model, scale, layout, n_adapt, discount, writer, device, args: Args
         context = collect_episodes(env, args.context_episodes, seed=args.seed + 20_000 + env_id)
         reset_adapters(context)
         no_adapt = lambda c: None  # noqa: E731  Exp 1: the oracle knows the environment, it does not adapt
-        online = online_adaptation(env, context, no_adapt, act, args.online_eval_steps, seed=args.seed + 30_000 + env_id)
+        online = online_adaptation(env, context, no_adapt, act, args.online_eval_steps, seed=args.seed + 30_000 + env_id, desc=f"eval env {env_id} online")
         for record in online:
             writer.add_scalar(f"eval/online/env{env_id}/episodic_return", record["return"], record["step"])
             writer.add_scalar(f"eval/online/env{env_id}/success", record["success"], record["step"])
         results["online"][env_id], results["offline"][env_id] = online, {}
         for steps in args.offline_adapt_steps:  # Exp 2: fresh adapters, `steps` gradient steps, frozen
             reset_adapters(context)
-            offline = offline_adaptation(env, context, lambda c: adapt(c, steps), act, args.eval_episodes, seed=args.seed + 40_000 + env_id)
+            offline = offline_adaptation(env, context, lambda c: adapt(c, steps), act, args.eval_episodes, seed=args.seed + 40_000 + env_id, desc=f"eval env {env_id} offline")
             offline_return = float(np.mean([r["return"] for r in offline]))
             writer.add_scalar(f"eval/offline/env{env_id}/episodic_return", offline_return, steps)
             writer.add_scalar(f"eval/offline/env{env_id}/success", float(np.mean([r["success"] for r in offline])), steps)
@@ -685,11 +704,15 @@ def evaluate(model, scale, layout, n_adapt, discount, writer, device, args: Args
 # Main: set-up, prefill, burst, online pretraining loop, evaluation
 # ---------------------------------------------------------------------------------------------
 def main(args: Args):
+    started = time.time()
     validate_args(args)
-    if args.eval_only:  # architecture and family come from the checkpoint
-        saved = torch.load(args.checkpoint, map_location="cpu", weights_only=False)["args"]
-        for key in ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic"):  # the rank is a test-time choice here
-            setattr(args, key, saved[key])
+    purge_step = None
+    if args.resume or args.eval_only:  # the checkpoint's arguments; a flag given explicitly with another value is an error
+        saved = read_checkpoint(args.resume or args.checkpoint, os.path.basename(__file__))
+        architecture = ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic")  # the rank is a test-time choice here
+        adopt_args(args, saved["args"], None if args.resume else architecture, args.resume or args.checkpoint)  # --resume: every flag
+        purge_step, saved = saved["global_step"] + 1 if args.resume else None, None  # checkpoints are large: keep only the step
+    total_timesteps, seed_steps, prefill = validate_args(args)
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
@@ -703,8 +726,6 @@ def main(args: Args):
     for env_id, env in enumerate(envs):
         env.action_space.seed(args.seed + env_id)
     obs_dim, act_dim = envs[0].observation_space.shape[0], envs[0].action_space.shape[0]
-    total_timesteps = args.total_timesteps or DEFAULT_TOTAL_TIMESTEPS[args.family]
-    seed_steps = args.seed_steps if args.seed_steps is not None else max(1000, 5 * ep_len)
     discount = default_discount(args, ep_len)
 
     model = WorldModel(obs_dim, act_dim, args.model_size, args).to(device)
@@ -713,12 +734,15 @@ def main(args: Args):
     print(f"adapter parameters: {n_wm} (world model) + {n_pi} (policy)", flush=True)
     if args.dry_run:
         return
+    print(describe_device(args, device, args.model_size))
+    if not args.eval_only:
+        print(f"budget: {total_timesteps} agent steps: a {prefill}-step random prefill, {args.burst_updates} burst updates, then training", flush=True)
 
     if args.resume and args.run_dir is None:  # keep logging into the interrupted run
         args.run_dir = os.path.dirname(os.path.abspath(args.resume))
     run_dir = args.run_dir or f"runs/{args.family}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    writer = SummaryWriter(run_dir)
-    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in vars(args).items()))
+    writer = SummaryWriter(run_dir, purge_step=purge_step)  # a resumed run replaces the events logged after its checkpoint
+    writer.add_text("hyperparameters", hyperparameter_text(args, total_timesteps=total_timesteps, seed_steps=seed_steps, discount=discount, device=device))
     scale = RunningScale(args.tau, device)
     if args.eval_only:
         load_checkpoint(args.checkpoint, model, scale=scale)
@@ -729,33 +753,32 @@ def main(args: Args):
     optimizers = make_optimizers(model, args)
     replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
-    global_step = 0
+    global_step, burst_left, saved_at = 0, args.burst_updates, time.time()
+
+    def save():  # atomic; also right after the prefill and the burst, and every --checkpoint-minutes
+        nonlocal saved_at
+        save_checkpoint(checkpoint_path, global_step, burst_left, model, optimizers, scale, replay, args)
+        saved_at = time.time()
+
     if args.resume:
         state = load_checkpoint(args.resume, model, optimizers, scale, replay, restore_rng=True)
-        global_step = state["global_step"]
+        global_step, burst_left = state["global_step"], state.get("burst_left", 0)
         print(f"resumed from {args.resume} at step {global_step}", flush=True)
     else:
-        # update buffers: random-action prefill, whole episodes, every environment
-        episodes_per_env = max(1, math.ceil(seed_steps / (n_envs * ep_len)))
-        for env_id, env in enumerate(envs):
-            for _ in range(episodes_per_env):
-                obs, _ = env.reset()
-                done, first = False, True
-                while not done:
-                    action = env.action_space.sample()
-                    next_obs, reward, terminated, truncated, _ = env.step(action)
-                    replay.add(env_id, obs, action, reward, next_obs, first)
-                    obs, first, done, global_step = next_obs, False, terminated or truncated, global_step + 1
-        burst = args.burst_updates
-        print(f"prefilled {global_step} steps; {burst} burst updates", flush=True)
-        for _ in range(burst):
+        global_step += random_prefill(dict(enumerate(envs)), replay, prefill)  # update buffers: every environment
+        save()
+    if burst_left:  # also a run killed during its burst: it resumes from the checkpoint after the prefill
+        print(f"prefilled {global_step} steps; {burst_left} burst updates", flush=True)
+        for _ in progress_bar(range(burst_left), desc="burst"):
             k = random.randrange(n_envs)
             update(model, optimizers, scale, *replay.sample(k, args.batch_size), discount, args)
+        burst_left = 0
+        save()
 
     rollout_env = random.randrange(n_envs)
     obs, _ = envs[rollout_env].reset()
     first, episode_return, prev_mean = True, 0.0, None
-    start_time, start_step = time.time(), global_step
+    start_time, start_step, recent = time.time(), global_step, deque(maxlen=10)  # recent: (return, success) of the last episodes
     while global_step < total_timesteps:
         # update the model on a training environment sampled per step
         k = random.randrange(n_envs)
@@ -772,6 +795,7 @@ def main(args: Args):
             writer.add_scalar("charts/episodic_return", episode_return, global_step)
             writer.add_scalar("charts/episodic_success", float(step_info.get("success", 0.0)), global_step)
             writer.add_scalar(f"charts/env{envs[rollout_env].unwrapped.env_id}/episodic_return", episode_return, global_step)
+            recent.append((episode_return, float(step_info.get("success", 0.0))))
             rollout_env = random.randrange(n_envs)
             obs, _ = envs[rollout_env].reset()
             first, episode_return = True, 0.0
@@ -782,11 +806,11 @@ def main(args: Args):
             writer.add_scalar("charts/q_scale", float(scale.value), global_step)
             writer.add_scalar("charts/SPS", sps, global_step)
             print(f"step {global_step}/{total_timesteps} | wm_loss {float(info['wm_loss']):.3f} | "
-                  f"pi_loss {float(info['pi_loss']):.3f} | SPS {sps}", flush=True)
+                  f"pi_loss {float(info['pi_loss']):.3f} | {progress_text(global_step, total_timesteps, start_step, start_time, started, recent, args.family)}", flush=True)
             writer.flush()
-        if global_step % args.checkpoint_every == 0:
-            save_checkpoint(checkpoint_path, global_step, model, optimizers, scale, replay, args)
-    save_checkpoint(checkpoint_path, global_step, model, optimizers, scale, replay, args)
+        if global_step % args.checkpoint_every == 0 or time.time() - saved_at > 60 * args.checkpoint_minutes:
+            save()
+    save()
     print(f"saved {checkpoint_path}", flush=True)
     if args.evaluate_after_training:
         evaluate(model, scale, layout, n_wm + n_pi, discount, writer, device, args)

@@ -10,7 +10,8 @@ Metrics per run (keys written by every method script):
                                    (CLAW, FiLM, Concat: x = 0, their single adaptation pass)
   online_return_env{j}             Exp 1 return in environment j alone
 Curves (Exp 1): family-averaged return and success per test-time step, averaged across seeds.
-Runs that failed, are still running, or lack evaluation events are listed, never dropped silently.
+Runs that failed, are still running, or lack evaluation events are listed, never dropped silently;
+so are runs whose events repeat a step (a resume logged without purge_step), of which the last value counts.
 """
 from __future__ import annotations
 
@@ -49,7 +50,12 @@ def load_runs(root: str) -> list[dict]:
             run = json.load(f)
         run["dir"] = os.path.dirname(path)
         events = EventAccumulator(run["dir"], size_guidance={"scalars": 0}).Reload()
-        run["scalars"] = {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+        run["scalars"], run["duplicated"] = {}, []
+        for tag in events.Tags()["scalars"]:
+            steps = [(e.step, e.value) for e in events.Scalars(tag)]
+            if len({step for step, _ in steps}) < len(steps):  # e.g. a resume logged without purge_step
+                run["duplicated"].append(tag)
+            run["scalars"][tag] = sorted(dict(steps).items())  # the last value written at a step wins, as in TensorBoard
         runs.append(run)
     return runs
 
@@ -119,7 +125,7 @@ def write_csv(path: str, rows: list[dict]):
         writer.writerows(rows)
 
 
-def markdown(rows: list[dict], problems: list[tuple[str, str]]) -> str:
+def markdown(rows: list[dict], problems: list[tuple[str, str]], duplicated: list[tuple[str, list]] = ()) -> str:
     lines = ["| method | family | size | rank | metric | x | seeds | mean | 95% CI |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         x = "" if r["x"] is None else r["x"]
@@ -127,6 +133,9 @@ def markdown(rows: list[dict], problems: list[tuple[str, str]]) -> str:
                      f"{r['mean']:.1f} | ± {r['ci95']:.1f} |")
     if problems:
         lines += ["", "Runs not aggregated:", ""] + [f"- `{os.path.basename(d)}`: {why}" for d, why in problems]
+    if duplicated:
+        lines += ["", "Runs with duplicated TensorBoard steps (last value per step kept):", ""]
+        lines += [f"- `{os.path.basename(d)}`: {', '.join(tags)}" for d, tags in duplicated]
     return "\n".join(lines) + "\n"
 
 
@@ -140,7 +149,10 @@ def main(argv=None):
     rows, curves, problems = summarize(runs)
     write_csv(os.path.join(cli.root, "summary.csv"), rows)
     write_csv(os.path.join(cli.root, "curves.csv"), curves)
-    table = markdown(rows, problems)
+    duplicated = [(run["dir"], run["duplicated"]) for run in runs if run["duplicated"]]
+    for run_dir, tags in duplicated:
+        print(f"warning: {run_dir} has duplicated steps in {len(tags)} tag(s), e.g. {tags[0]}; kept the last value per step")
+    table = markdown(rows, problems, duplicated)
     with open(os.path.join(cli.root, "summary.md"), "w") as f:
         f.write(table)
     print(table)

@@ -213,7 +213,11 @@ def main(argv=None):
     parser.add_argument("--methods", nargs="+", choices=list(SCRIPTS), default=None, help="only these methods' runs")
     parser.add_argument("--dry-run", action="store_true", help="list the commands and exit")
     cli = parser.parse_args(argv)
+    if cli.workers < 1:
+        raise SystemExit(f"error: --workers must be >= 1, got {cli.workers}")
     root = cli.root or os.path.join("runs", "sweeps", cli.scale)
+    if os.path.exists(root) and not os.path.isdir(root):
+        raise SystemExit(f"error: --root {root!r} exists and is not a directory")
     runs = [r for r in plan_runs(cli.experiments, cli.scale) if cli.methods is None or r.method in cli.methods]
     print(f"{len(runs)} runs for {' '.join(cli.experiments)} at scale {cli.scale} in {root}")
     failed = launch(runs, os.path.abspath(root), cli.workers, cli.dry_run)

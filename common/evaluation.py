@@ -13,19 +13,21 @@ from typing import Callable
 import numpy as np
 import scipy.stats
 
+from common.runs import progress_bar
+
 AdaptFn = Callable[[dict], None]
 ActFn = Callable[[np.ndarray, bool], np.ndarray]
 
 
-def online_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_steps: int, seed: int) -> list[dict]:
+def online_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_steps: int, seed: int, desc: str | None = None) -> list[dict]:
     """Exp 1: roll out for `num_steps` agent steps, re-adapting before every planner call.
 
     Returns one record per finished episode: the test-time step at which it ended, its return
-    and its final-step success (always 0.0 outside Meta-World)."""
+    and its final-step success (always 0.0 outside Meta-World). desc: label of a progress bar."""
     records = []
     obs, _ = env.reset(seed=seed)
     first_step, episode_return = True, 0.0
-    for step in range(1, num_steps + 1):
+    for step in progress_bar(range(1, num_steps + 1), desc=desc) if desc else range(1, num_steps + 1):
         adapt(context)
         action = act(obs, first_step)
         obs, reward, terminated, truncated, info = env.step(action)
@@ -38,11 +40,12 @@ def online_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_steps:
     return records
 
 
-def offline_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_episodes: int, seed: int) -> list[dict]:
-    """Exp 2: adapt once on the fixed context data, freeze, and evaluate `num_episodes` episodes."""
+def offline_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_episodes: int, seed: int, desc: str | None = None) -> list[dict]:
+    """Exp 2: adapt once on the fixed context data, freeze, and evaluate `num_episodes` episodes
+    (desc: label of a progress bar over them)."""
     adapt(context)
     records = []
-    for episode in range(num_episodes):
+    for episode in progress_bar(range(num_episodes), desc=desc) if desc else range(num_episodes):
         obs, _ = env.reset(seed=seed + episode)
         first_step, episode_return, done = True, 0.0, False
         while not done:

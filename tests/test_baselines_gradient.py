@@ -96,8 +96,10 @@ def test_eval_only_restores_q_scale_and_takes_any_rank(pretrained, tmp_path):
     checkpoint = os.path.join(args.run_dir, "checkpoint.pt")
     assert float(torch.load(checkpoint, weights_only=False)["scale"]) > 0
     eval_args = dataclasses.replace(args, eval_only=True, checkpoint=checkpoint, run_dir=str(tmp_path / "eval"), rank=4,
-                                    family="walker", online_eval_steps=0, offline_adapt_steps=(1,))
-    out, adapt_steps = run(dr, eval_args)
+                                    family="reach", online_eval_steps=0, offline_adapt_steps=(1,))
+    with pytest.raises(SystemExit, match="--family walker conflicts with reach"):  # never silently replaced
+        run(dr, dataclasses.replace(eval_args, family="walker"))
+    out, adapt_steps = run(dr, dataclasses.replace(eval_args, family="reach"))
     assert "adapter parameters: 1468 (world model) + 224 (policy)" in out  # reach from the checkpoint, rank 4
     assert out.count("eval env") == 6 and "eval offline (1 steps)" in out and adapt_steps == 6
 
@@ -106,11 +108,13 @@ def test_resume_continues_a_killed_run(pretrained, tmp_path):
     args, _, _ = pretrained("dr")
     first = torch.load(os.path.join(args.run_dir, "checkpoint.pt"), weights_only=False)
     os.makedirs(tmp_path / "run")
-    torch.save(first, tmp_path / "run" / "checkpoint.pt")
-    resume_args = dataclasses.replace(args, total_timesteps=740, resume=str(tmp_path / "run" / "checkpoint.pt"),
-                                      run_dir=None, evaluate_after_training=False)
-    out, _ = run(dr, resume_args)
-    assert "at step 700" in out and "step 720/740" in out
+    killed = copy.deepcopy(first)  # as if a 740-step run had been killed after its checkpoint at 700
+    killed["args"].update(total_timesteps=740, evaluate_after_training=False)
+    torch.save(killed, tmp_path / "run" / "checkpoint.pt")
+    with pytest.raises(SystemExit, match="--total-timesteps 2000 conflicts with 740"):
+        run(dr, dr.Args(resume=str(tmp_path / "run" / "checkpoint.pt"), total_timesteps=2000))
+    out, _ = run(dr, dr.Args(resume=str(tmp_path / "run" / "checkpoint.pt"), threads=1, log_every=10))  # free flags
+    assert "at step 700" in out and "step 710/740" in out and "step 720/740" in out
     resumed = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
     assert resumed["global_step"] == 740 and resumed["replay"]["size"] == first["replay"]["size"] + 40
     assert not torch.equal(resumed["model"]["qs.weights.0"], first["model"]["qs.weights.0"])  # it trained on

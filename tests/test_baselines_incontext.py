@@ -119,7 +119,10 @@ def test_film_end_to_end_and_resume(tmp_path, capsys):
     assert {"charts/SPS", "losses/wm_loss", "losses/adapter_norm", "eval/online/episodic_return",
             "eval/offline/episodic_return", "eval/online/env5/episodic_return"} <= scalar_tags(args.run_dir)
     checkpoint = os.path.join(args.run_dir, "checkpoint.pt")
-    film.main(dataclasses.replace(args, total_timesteps=660, resume=checkpoint, run_dir=None, evaluate_after_training=False))
+    state = torch.load(checkpoint, weights_only=False)
+    state["args"].update(total_timesteps=660, evaluate_after_training=False)  # as if killed at 640 of 660
+    torch.save(state, checkpoint)
+    film.main(film.Args(resume=checkpoint))
     out = capsys.readouterr().out
     assert "at step 640" in out and "step 660/660" in out
     assert torch.load(checkpoint, weights_only=False)["global_step"] == 660
@@ -161,8 +164,10 @@ def test_concat_end_to_end_and_eval_only(tmp_path, capsys):
     assert {"charts/SPS", "losses/wm_loss", "losses/context_norm"} <= scalar_tags(args.run_dir)
     capsys.readouterr()
     eval_dir = tmp_path / "eval"
-    concat.main(dataclasses.replace(args, eval_only=True, checkpoint=os.path.join(args.run_dir, "checkpoint.pt"),
-                                    run_dir=str(eval_dir), family="walker", context_dim=1))  # both from the checkpoint
+    eval_args = dataclasses.replace(args, eval_only=True, checkpoint=os.path.join(args.run_dir, "checkpoint.pt"), run_dir=str(eval_dir))
+    with pytest.raises(SystemExit, match="--context-dim 1 conflicts with 64"):  # never silently replaced
+        concat.main(dataclasses.replace(eval_args, context_dim=1))
+    concat.main(eval_args)
     out = capsys.readouterr().out
     assert out.count("eval env") == 6 and "eval offline: return" in out
     assert {"eval/online/episodic_return", "eval/offline/episodic_return", "eval/online/env5/episodic_return",
@@ -211,7 +216,7 @@ def test_posthoc_passes_train_only_their_own_parameters():
 
 def test_posthoc_resume_across_pass_boundary_freezes_base_and_evaluates_cheetah(tmp_path, capsys, monkeypatch):
     # a run killed right after pass 1 (its checkpoint at total/2 = 550 is the last one written)
-    args = tiny_args(posthoc, tmp_path, checkpoint_every=550)
+    args = tiny_args(posthoc, tmp_path, checkpoint_every=550, evaluate_after_training=True, online_eval_steps=500)
 
     def killed(*_, **__):
         raise KeyboardInterrupt
@@ -226,7 +231,7 @@ def test_posthoc_resume_across_pass_boundary_freezes_base_and_evaluates_cheetah(
     pass1 = torch.load(checkpoint, weights_only=False)
     assert (pass1["global_step"], pass1["pass"], pass1["contexts"]) == (550, 1, ([[]], 0))
     # resume: pass 2 with its own cheetah prefill and context pool, then cheetah-only evaluation
-    posthoc.main(dataclasses.replace(args, resume=checkpoint, run_dir=None, evaluate_after_training=True, online_eval_steps=500))
+    posthoc.main(posthoc.Args(resume=checkpoint))
     out = capsys.readouterr().out
     assert "at step 550 in pass 1" in out and "pass 2: prefilled up to step 1050" in out and "step 1100/1100" in out
     assert out.count("eval env") == 1 and "eval env 0:" in out
@@ -239,7 +244,10 @@ def test_posthoc_resume_across_pass_boundary_freezes_base_and_evaluates_cheetah(
     assert {"losses/adapter_norm", "eval/online/episodic_return", "eval/offline/episodic_return",
             "eval/online/env0/episodic_return"} <= scalar_tags(args.run_dir)
     # a run killed inside pass 2 continues pass 2: no new prefill, base still frozen
-    posthoc.main(dataclasses.replace(args, total_timesteps=1120, resume=checkpoint, run_dir=None))
+    state = torch.load(checkpoint, weights_only=False)
+    state["args"].update(total_timesteps=1120, evaluate_after_training=False)  # as if killed at 1100 of 1120
+    torch.save(state, checkpoint)
+    posthoc.main(posthoc.Args(resume=checkpoint))
     out = capsys.readouterr().out
     assert "at step 1100 in pass 2" in out and "prefilled" not in out and "step 1120/1120" in out
     resumed = torch.load(checkpoint, weights_only=False)

@@ -157,7 +157,7 @@ def test_dry_run_prints_exact_counts(tmp_path, capsys):
     assert not os.path.exists(tmp_path / "run")
 
 
-def test_same_seed_runs_are_identical_and_resume_continues(tmp_path, capsys):
+def test_same_seed_runs_are_identical_and_resume_continues(tmp_path, capsys, monkeypatch):
     claw.main(tiny_args(tmp_path / "a"))
     claw.main(tiny_args(tmp_path / "b"))
     first = torch.load(tmp_path / "a" / "run" / "checkpoint.pt", weights_only=False)
@@ -165,14 +165,37 @@ def test_same_seed_runs_are_identical_and_resume_continues(tmp_path, capsys):
     assert first["global_step"] == 640
     for key, value in first["model"].items():
         assert torch.equal(value, second["model"][key]), key
-    # a killed run resumes from its last checkpoint and continues counting from there
-    capsys.readouterr()
-    claw.main(tiny_args(tmp_path / "a", total_timesteps=680, resume=str(tmp_path / "a" / "run" / "checkpoint.pt"), run_dir=None))
+    # a 680-step run killed at step 680's progress line: its last checkpoint is step 640, its events reach 660
+    args = tiny_args(tmp_path / "c", total_timesteps=680, checkpoint_every=640)
+    progress_text = claw.progress_text
+
+    def killed_at_680(step, *rest):
+        if step == 680:
+            raise KeyboardInterrupt
+        return progress_text(step, *rest)
+
+    monkeypatch.setattr(claw, "progress_text", killed_at_680)
+    with pytest.raises(KeyboardInterrupt):
+        claw.main(args)
+    monkeypatch.undo()
     out = capsys.readouterr().out
-    assert "at step 640" in out and "step 660/680" in out
-    resumed = torch.load(tmp_path / "a" / "run" / "checkpoint.pt", weights_only=False)
-    assert resumed["global_step"] == 680
+    assert "budget: 680 agent steps: a 600-step random prefill, 5 burst updates" in out
+    assert "step 660/680 |" in out and "| SPS " in out and "| elapsed 0:00:" in out and "| ETA 0:00:" in out
+    checkpoint = os.path.join(args.run_dir, "checkpoint.pt")
+    assert torch.load(checkpoint, weights_only=False)["global_step"] == 640
+    # --resume alone: the saved arguments, continued from step 640 into the same run directory
+    claw.main(claw.Args(resume=checkpoint))
+    out = capsys.readouterr().out
+    assert "at step 640" in out and "step 660/680" in out and "step 680/680" in out and "prefilled" not in out
+    resumed = torch.load(checkpoint, weights_only=False)
+    assert resumed["global_step"] == 680 and resumed["args"]["model_size"] == "I"
     assert resumed["replay"]["size"] == first["replay"]["size"] + 40
+    # purge_step: the steps after the checkpoint were logged twice, TensorBoard keeps the resumed ones only
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(args.run_dir).Reload()
+    steps = [e.step for e in events.Scalars("losses/wm_loss")]
+    assert steps == [620, 640, 660, 680]
 
 
 def test_end_to_end_pretraining_and_both_protocols(tmp_path, capsys):
@@ -190,6 +213,9 @@ def test_end_to_end_pretraining_and_both_protocols(tmp_path, capsys):
     claw.main(dataclasses.replace(args, eval_only=True, checkpoint=os.path.join(args.run_dir, "checkpoint.pt"),
                                   run_dir=str(tmp_path / "eval")))
     assert capsys.readouterr().out.count("eval env") == 6
+    # an explicit --rank that contradicts the checkpoint's is an error, not silently replaced
+    with pytest.raises(SystemExit, match="--rank 4 conflicts with 2"):
+        claw.main(dataclasses.replace(args, eval_only=True, checkpoint=os.path.join(args.run_dir, "checkpoint.pt"), rank=4))
 
 
 def test_context_pool_draws_whole_episodes_and_refreshes_in_turn():

@@ -1,0 +1,189 @@
+"""Runs a user can trust (every script alike): arguments checked before any work, checked checkpoints,
+--resume with the saved arguments, progress and start-up lines, duplicated TensorBoard steps reported."""
+import json
+import os
+import re
+import time
+
+import pytest
+import torch
+import tyro
+
+import claw_tdmpc2 as claw
+import concat_tdmpc2 as concat
+import dr_tdmpc2 as dr
+import film_tdmpc2 as film
+import oracle_tdmpc2 as oracle
+import posthoc_tdmpc2 as posthoc
+import st_tdmpc2 as st
+from benchmarks import aggregate, experiments
+from common.runs import describe_device, hyperparameter_text, progress_text
+
+SCRIPTS = [claw, dr, st, oracle, film, concat, posthoc]
+
+
+def args_for(script, tmp_path, **overrides):
+    base = dict(family="cheetah_walker" if script is posthoc else "reach", cuda=False, run_dir=str(tmp_path / "run"))
+    return script.Args(**{**base, **overrides})
+
+
+def fake_checkpoint(path, script, method=None, **args):
+    """The parts of a checkpoint that are read before any work: method and arguments."""
+    state = {"method": method or os.path.basename(script.__file__), "args": vars(args_for(script, path.parent, **args)),
+             "model": {}, "global_step": 0}
+    torch.save(state, path)
+    return str(path)
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=lambda s: s.__name__)
+def test_bad_counts_and_budgets_fail_before_any_work(script, tmp_path):
+    cases = [
+        (dict(total_timesteps=0), "--total-timesteps must be a positive integer, got 0"),
+        (dict(total_timesteps=-5), "--total-timesteps must be a positive integer, got -5"),
+        (dict(batch_size=0), "--batch-size must be a positive integer, got 0"),
+        (dict(log_every=0), "--log-every must be a positive integer, got 0"),
+        (dict(checkpoint_every=0), "--checkpoint-every must be a positive integer"),
+        (dict(eval_episodes=0), "--eval-episodes must be a positive integer"),
+        (dict(num_samples=0, num_elites=0, num_pi_trajs=0), "--num-elites"),
+        (dict(context_episodes=0), "--context-episodes"),
+        (dict(burst_updates=-1), "--burst-updates must be >= 0, got -1"),
+        (dict(online_eval_steps=-1), "--online-eval-steps must be >= 0"),
+        (dict(eval_only=True, resume="x", checkpoint="x"), "does not exist|exclude each other"),
+    ]
+    if script is posthoc:  # a pass is half the budget; each has its own 3-episode prefill of one environment
+        cases.append((dict(total_timesteps=3000), r"half of --total-timesteps \(one pass\): 1500 must exceed the random-action prefill of 1500 steps"))
+    elif script is st:  # one environment: 5 walker episodes
+        cases.append((dict(family="walker", total_timesteps=2500), r"--total-timesteps: 2500 must exceed the random-action prefill of 2500 steps"))
+    else:  # one 500-step episode of each of walker's 20 environments
+        cases.append((dict(family="walker", total_timesteps=5000), r"--total-timesteps: 5000 must exceed the random-action prefill of 10000 steps"))
+    for overrides, message in cases:
+        with pytest.raises(SystemExit, match=message):
+            script.main(args_for(script, tmp_path, **overrides))
+    assert not os.path.exists(tmp_path / "run")
+
+
+def test_help_lists_the_families(capsys):
+    with pytest.raises(SystemExit):
+        tyro.cli(claw.Args, args=["--help"])
+    assert "walker,reach,push,go1,cheetah_walker" in capsys.readouterr().out.replace(" ", "").replace("\n", "")
+
+
+@pytest.mark.parametrize("script", [dr, st, posthoc], ids=lambda s: s.__name__)
+def test_another_scripts_checkpoint_is_refused(script, tmp_path):
+    path = fake_checkpoint(tmp_path / "claw.pt", claw)
+    for args in (args_for(script, tmp_path, eval_only=True, checkpoint=path), args_for(script, tmp_path, resume=path)):
+        with pytest.raises(SystemExit, match=f"claw.pt is a claw_tdmpc2.py checkpoint, expected one written by {script.__name__}.py"):
+            script.main(args)
+    # a checkpoint from before the method was recorded is told apart by its run's exp_name
+    state = torch.load(path, weights_only=False)
+    del state["method"]
+    torch.save(state, path)
+    with pytest.raises(SystemExit, match="is a claw_tdmpc2.py checkpoint"):
+        script.main(args_for(script, tmp_path, eval_only=True, checkpoint=path))
+
+
+def test_unreadable_checkpoints_give_one_line(tmp_path):
+    real = fake_checkpoint(tmp_path / "real.pt", claw)
+    data = open(real, "rb").read()
+    (tmp_path / "truncated.pt").write_bytes(data[: len(data) // 2])
+    (tmp_path / "text.pt").write_text("not a checkpoint")
+    torch.save([1, 2, 3], tmp_path / "list.pt")
+    for name, message in (("truncated", "cannot read checkpoint .*truncated.pt: "), ("text", "cannot read checkpoint .*text.pt: "),
+                          ("list", "list.pt is not a checkpoint of these scripts")):
+        with pytest.raises(SystemExit, match=message) as error:
+            claw.main(args_for(claw, tmp_path, resume=str(tmp_path / f"{name}.pt")))
+        assert "\n" not in str(error.value)
+
+
+def test_checkpoint_of_another_configuration_is_refused(tmp_path):
+    args = dr.Args(family="reach", model_size="I")
+    model = dr.WorldModel(39, 4, "I", args)
+    path = str(tmp_path / "checkpoint.pt")
+    dr.save_checkpoint(path, 0, 0, model, dr.make_optimizers(model, args), dr.RunningScale(args.tau, "cpu"), None, args)
+    dr.load_checkpoint(path, dr.WorldModel(39, 4, "I", args))  # the same configuration loads
+    with pytest.raises(SystemExit, match="holds model_size I, expected G"):
+        dr.load_checkpoint(path, dr.WorldModel(39, 4, "G", dr.Args(family="reach", model_size="G")))
+    with pytest.raises(SystemExit, match=r"holds dims \(39, 4\), expected \(24, 6\)"):
+        dr.load_checkpoint(path, dr.WorldModel(24, 6, "I", args))
+    state = torch.load(path, weights_only=False)
+    state["args"]["model_size"] = "G"  # weights that do not match what the checkpoint claims
+    torch.save(state, path)
+    with pytest.raises(SystemExit, match="does not fit this configuration: size mismatch for") as error:
+        dr.load_checkpoint(path, dr.WorldModel(39, 4, "G", dr.Args(family="reach", model_size="G")))
+    assert "\n" not in str(error.value)
+
+
+def test_resume_and_eval_only_refuse_conflicting_flags(tmp_path):
+    path = fake_checkpoint(tmp_path / "checkpoint.pt", claw, model_size="I", rank=2, batch_size=16, total_timesteps=640)
+    with pytest.raises(SystemExit, match="--batch-size 32 conflicts with 16 in .*checkpoint.pt"):
+        claw.main(claw.Args(resume=path, batch_size=32, cuda=False))
+    with pytest.raises(SystemExit, match="--total-timesteps 2000 conflicts with 640"):
+        claw.main(claw.Args(resume=path, total_timesteps=2000, cuda=False))
+    with pytest.raises(SystemExit, match="--model-size F conflicts with I"):
+        claw.main(claw.Args(eval_only=True, checkpoint=path, model_size="F", cuda=False))
+
+
+def test_start_up_and_progress_lines():
+    now = time.time()
+    line = progress_text(50, 150, 0, now - 10, now - 20, [(1.0, 1.0), (3.0, 0.0)], "reach")
+    assert re.fullmatch(r"return 2\.0 \| success 0\.50 \| SPS [45] \| elapsed 0:00:(19|20) \| ETA 0:00:(19|20)", line), line
+    assert progress_text(10, 20, 0, now - 1, now - 1, [], "walker").startswith("return - | SPS")  # no success off Meta-World
+    if not torch.cuda.is_available():
+        text = describe_device(claw.Args(), torch.device("cpu"), "A")
+        assert "device: cpu" in text and "warning: --cuda was asked for but CUDA is not available" in text and "--model-size F" in text
+    table = hyperparameter_text(claw.Args(), total_timesteps=50_000, seed_steps=1000, discount=0.99, device="cpu")
+    assert "|total_timesteps|50000|" in table and "|seed_steps|1000|" in table and "|device|cpu|" in table
+    assert "|git_commit|" in table and "|git_commit||" not in table
+
+
+def test_aggregate_reports_duplicated_steps(tmp_path, capsys):
+    from torch.utils.tensorboard import SummaryWriter
+
+    run_dir = tmp_path / "claw__reach__I__r2__s1"
+    for value in (10.0, 30.0):  # two processes logging the same steps, as a resume without purge_step did
+        writer = SummaryWriter(str(run_dir))
+        writer.add_scalar("eval/online/episodic_return", value, 100)
+        writer.add_scalar("eval/offline/episodic_return", value, 0)
+        writer.close()
+    (run_dir / "run.json").write_text(json.dumps({"method": "claw", "family": "reach", "size": "I", "rank": 2, "seed": 1, "status": "done"}))
+    aggregate.main([str(tmp_path)])
+    out = capsys.readouterr().out
+    assert f"warning: {run_dir} has duplicated steps in 2 tag(s)" in out
+    assert "Runs with duplicated TensorBoard steps" in out and "claw__reach__I__r2__s1" in (tmp_path / "summary.md").read_text()
+    assert aggregate.load_runs(str(tmp_path))[0]["scalars"]["eval/online/episodic_return"] == [(100, 30.0)]  # the last value
+
+
+def test_launcher_arguments(tmp_path):
+    for workers in ("0", "-2"):
+        with pytest.raises(SystemExit, match=f"--workers must be >= 1, got {workers}"):
+            experiments.main(["exp1", "--scale", "smoke", "--dry-run", "--workers", workers])
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SystemExit, match="exists and is not a directory"):
+        experiments.main(["exp1", "--scale", "smoke", "--dry-run", "--root", str(tmp_path / "file")])
+
+
+def test_a_run_killed_in_its_burst_resumes_from_its_prefill(tmp_path, capsys, monkeypatch):
+    from test_claw import tiny_args
+
+    args = tiny_args(tmp_path, total_timesteps=620)
+    update, calls = claw.update, [0]
+
+    def killed_in_burst(*a, **k):
+        calls[0] += 1
+        if calls[0] == 3:
+            raise KeyboardInterrupt
+        return update(*a, **k)
+
+    monkeypatch.setattr(claw, "update", killed_in_burst)
+    with pytest.raises(KeyboardInterrupt):
+        claw.main(args)
+    monkeypatch.undo()
+    checkpoint = os.path.join(args.run_dir, "checkpoint.pt")
+    state = torch.load(checkpoint, weights_only=False)
+    assert (state["global_step"], state["burst_left"], state["replay"]["size"], state["method"]) == (600, 5, 600, "claw_tdmpc2.py")
+    capsys.readouterr()
+    claw.main(claw.Args(resume=checkpoint))  # no new context pool or prefill: the burst again, then training
+    out = capsys.readouterr().out
+    assert "at step 600" in out and "prefilled 600 steps; 5 burst updates" in out and "step 620/620" in out
+    state = torch.load(checkpoint, weights_only=False)
+    assert (state["global_step"], state["burst_left"], state["replay"]["size"]) == (620, 0, 620)
