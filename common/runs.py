@@ -63,7 +63,8 @@ def read_checkpoint(path: str, method: str, model=None) -> dict:
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as error:  # truncated, corrupt or not a torch file: torch raises many types
-        raise SystemExit(f"error: cannot read checkpoint {path}: {type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}") from None
+        detail = f"{type(error).__name__}: {str(error).splitlines()[0]}" if str(error) else type(error).__name__
+        raise SystemExit(f"error: cannot read checkpoint {path} (truncated, corrupt or not a torch file): {detail}") from None
     if not isinstance(state, dict) or not isinstance(state.get("args"), dict) or "model" not in state:
         raise SystemExit(f"error: {path} is not a checkpoint of these scripts (no saved 'args' and 'model')")
     found = state.get("method", f"{state['args'].get('exp_name')}.py")  # older checkpoints: the run's exp_name

@@ -88,7 +88,7 @@ def test_unreadable_checkpoints_give_one_line(tmp_path):
     (tmp_path / "truncated.pt").write_bytes(data[: len(data) // 2])
     (tmp_path / "text.pt").write_text("not a checkpoint")
     torch.save([1, 2, 3], tmp_path / "list.pt")
-    for name, message in (("truncated", "cannot read checkpoint .*truncated.pt: "), ("text", "cannot read checkpoint .*text.pt: "),
+    for name, message in (("truncated", r"cannot read checkpoint .*truncated.pt \(truncated, corrupt"), ("text", r"cannot read checkpoint .*text.pt \(truncated"),
                           ("list", "list.pt is not a checkpoint of these scripts")):
         with pytest.raises(SystemExit, match=message) as error:
             claw.main(args_for(claw, tmp_path, resume=str(tmp_path / f"{name}.pt")))
@@ -187,3 +187,31 @@ def test_a_run_killed_in_its_burst_resumes_from_its_prefill(tmp_path, capsys, mo
     assert "at step 600" in out and "prefilled 600 steps; 5 burst updates" in out and "step 620/620" in out
     state = torch.load(checkpoint, weights_only=False)
     assert (state["global_step"], state["burst_left"], state["replay"]["size"]) == (620, 0, 620)
+
+
+def test_posthoc_killed_in_its_first_burst_redoes_it_and_goes_on(tmp_path, capsys, monkeypatch):
+    from test_baselines_incontext import tiny_args
+
+    args = tiny_args(posthoc, tmp_path)
+    update, calls = posthoc.update, [0]
+
+    def killed_in_burst(*a, **k):
+        calls[0] += 1
+        if calls[0] == 3:
+            raise KeyboardInterrupt
+        return update(*a, **k)
+
+    monkeypatch.setattr(posthoc, "update", killed_in_burst)
+    with pytest.raises(KeyboardInterrupt):
+        posthoc.main(args)
+    monkeypatch.undo()
+    checkpoint = os.path.join(args.run_dir, "checkpoint.pt")
+    state = torch.load(checkpoint, weights_only=False)
+    assert (state["global_step"], state["pass"], state["burst_left"]) == (500, 1, 5)
+    capsys.readouterr()
+    posthoc.main(posthoc.Args(resume=checkpoint))
+    out = capsys.readouterr().out
+    assert "at step 500 in pass 1" in out and "pass 1: prefilled up to step 500; 5 burst updates" in out
+    assert "pass 2: prefilled up to step 1050; 5 burst updates" in out and "step 1100/1100" in out
+    state = torch.load(checkpoint, weights_only=False)
+    assert (state["global_step"], state["pass"], state["burst_left"]) == (1100, 2, 0)
