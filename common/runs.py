@@ -5,6 +5,7 @@ these helpers with the same lines, and `diff` between two scripts still shows on
 """
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import time
@@ -28,7 +29,7 @@ def check_counts(args, positive: tuple[str, ...], nonnegative: tuple[str, ...] =
     for key in positive:
         value = getattr(args, key, None)
         if value is not None and value <= 0:
-            raise SystemExit(f"error: {flag(key)} must be a positive integer, got {value}")
+            raise SystemExit(f"error: {flag(key)} must be a positive {'number' if isinstance(value, float) else 'integer'}, got {value}")
     for key in nonnegative:
         value = getattr(args, key, None)
         if value is not None and value < 0:
@@ -38,7 +39,7 @@ def check_counts(args, positive: tuple[str, ...], nonnegative: tuple[str, ...] =
 def prefill_steps(seed_steps: int, n_envs: int, ep_len: int, envs_filled: int) -> int:
     """Random-action prefill in agent steps: whole episodes, seed_steps spread over n_envs
     environments (at least one episode each), of which envs_filled are actually rolled."""
-    return max(1, -(-seed_steps // (n_envs * ep_len))) * envs_filled * ep_len
+    return max(1, math.ceil(seed_steps / (n_envs * ep_len))) * envs_filled * ep_len
 
 
 def resolve_budget(args, default_total: dict, n_envs: int | None = None, envs_filled: int | None = None) -> tuple[int, int, int]:
