@@ -64,7 +64,7 @@ SCALES = {
                    "--context-pool-episodes", "2", "--context-episodes", "1",
                    "--eval-episodes", "1", "--log-every", "10"],
         "exp12": ["--online-eval-steps", "100", "--offline-adapt-steps", "0", "1"],
-        "exp345": ["--online-eval-steps", "100"],
+        "exp345": ["--online-eval-steps", "100", "--total-timesteps", "1100"],  # beyond cheetah_walker's 1000-step prefill (last flag wins)
     },
 }
 
