@@ -8,15 +8,22 @@ script passes in:
 """
 from __future__ import annotations
 
+import os
 from typing import Callable
 
 import numpy as np
 import scipy.stats
-
-from common.runs import progress_bar
+from tqdm import tqdm
 
 AdaptFn = Callable[[dict], None]
 ActFn = Callable[[np.ndarray, bool], np.ndarray]
+
+
+def progress_bar(iterable=None, total: int | None = None, desc: str = ""):
+    """tqdm on stderr that leaves no line behind; silent when stderr is not a terminal (logs, sweeps)
+    unless CLAW_PROGRESS=1. The same as every script's own progress_bar."""
+    disable = None if os.environ.get("CLAW_PROGRESS") != "1" else False
+    return tqdm(iterable, total=total, desc=desc, leave=False, dynamic_ncols=True, disable=disable, mininterval=1.0)
 
 
 def online_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_steps: int, seed: int, desc: str | None = None) -> list[dict]:

@@ -17,7 +17,6 @@ import oracle_tdmpc2 as oracle
 import posthoc_tdmpc2 as posthoc
 import st_tdmpc2 as st
 from benchmarks import aggregate, experiments
-from common.runs import describe_device, hyperparameter_text, progress_text
 
 SCRIPTS = [claw, dr, st, oracle, film, concat, posthoc]
 
@@ -125,13 +124,13 @@ def test_resume_and_eval_only_refuse_conflicting_flags(tmp_path):
 
 def test_start_up_and_progress_lines():
     now = time.time()
-    line = progress_text(50, 150, 0, now - 10, now - 20, [(1.0, 1.0), (3.0, 0.0)], "reach")
+    line = claw.progress_text(50, 150, 0, now - 10, now - 20, [(1.0, 1.0), (3.0, 0.0)], "reach")
     assert re.fullmatch(r"return 2\.0 \| success 0\.50 \| SPS [45] \| elapsed 0:00:(19|20) \| ETA 0:00:(19|20)", line), line
-    assert progress_text(10, 20, 0, now - 1, now - 1, [], "walker").startswith("return - | SPS")  # no success off Meta-World
+    assert claw.progress_text(10, 20, 0, now - 1, now - 1, [], "walker").startswith("return - | SPS")  # no success off Meta-World
     if not torch.cuda.is_available():
-        text = describe_device(claw.Args(), torch.device("cpu"), "A")
+        text = claw.describe_device(claw.Args(model_size="A"), torch.device("cpu"))
         assert "device: cpu" in text and "warning: --cuda was asked for but CUDA is not available" in text and "--model-size F" in text
-    table = hyperparameter_text(claw.Args(), total_timesteps=50_000, seed_steps=1000, discount=0.99, device="cpu")
+    table = claw.hyperparameter_text(claw.Args(), total_timesteps=50_000, seed_steps=1000, discount=0.99, device="cpu")
     assert "|total_timesteps|50000|" in table and "|seed_steps|1000|" in table and "|device|cpu|" in table
     assert "|git_commit|" in table and "|git_commit||" not in table
 
