@@ -10,8 +10,9 @@ Metrics per run (keys written by every method script):
                                    (CLAW, FiLM, Concat: x = 0, their single adaptation pass)
   online_return_env{j}             Exp 1 return in environment j alone
 Curves (Exp 1): family-averaged return and success per test-time step, averaged across seeds.
-Runs that failed, are still running, or lack evaluation events are listed, never dropped silently;
-so are runs whose events repeat a step (a resume logged without purge_step), of which the last value counts.
+Runs that failed, are still running (their run.lock is held), died, or lack evaluation events are listed,
+never dropped silently; so are runs whose events repeat a step (a resume logged without purge_step), of
+which the last value counts.
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
 
+from benchmarks.experiments import run_is_live  # noqa: E402
 from common.evaluation import mean_ci  # noqa: E402
 
 GROUP_KEYS = ("method", "family", "size", "rank")
@@ -78,6 +80,10 @@ def run_metrics(run: dict) -> dict:
 
 def problem(run: dict) -> str | None:
     """Why a run cannot be aggregated, or None."""
+    if run_is_live(run["dir"]):
+        return "still running (a live process holds its run.lock)"
+    if run.get("status") == "running":
+        return "status running, but no live process holds its run.lock: it died; rerun the launcher to resume it"
     if run.get("status") != "done":
         return f"status {run.get('status', 'unknown')}" + (f" (returncode {run['returncode']})" if "returncode" in run else "")
     if not run_metrics(run):

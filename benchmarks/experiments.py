@@ -1,14 +1,20 @@
 """One-command recipes for the paper's Experiments 1-5, and the sweep launcher that runs them.
 
     python benchmarks/experiments.py exp1 --dry-run            # list the commands (paper scale)
-    python benchmarks/experiments.py exp1 exp2 --scale cpu --workers 2
+    python benchmarks/experiments.py exp1 exp2 --scale cpu --launcher local --workers 2
+    python benchmarks/experiments.py exp1 exp2 --launcher slurm --partition gpu --time 12:00:00 \
+        --cpus-per-task 8 --gpus-per-task 1                   # one SLURM job array, then returns
     python benchmarks/aggregate.py runs/sweeps/cpu             # tables with 95% CIs
     python benchmarks/figures.py runs/sweeps/cpu               # the paper's figures
 
-Every run is an ordinary script invocation with its own --run-dir under runs/sweeps/{scale}/.
-The launcher writes run.json beside each run (method, family, size, rank, seed, command, status);
-a run whose status is "done" is skipped, and a run with a checkpoint but no "done" is resumed
-with --resume. Exp 1 and Exp 2 share pretraining runs (each run evaluates both protocols), and
+Every run is an ordinary script invocation with its own --run-dir under runs/sweeps/{scale}/, its
+output in stdout.log there; local runs it on this machine, slurm as one task of a job array
+(submitit), requeued on preemption or time-out to resume from its checkpoint. The launcher writes
+run.json beside each run (method, family, size, rank, seed, experiments, command, status).
+The process that runs a run holds run.lock in its directory (flock) for the run's lifetime, so a
+restarted launcher skips runs that are "done" or live (lock held) and resumes, with --resume, those
+that died (lock free, checkpoint present); it prints a finished run whose recorded command differs
+from the recipe's. Exp 1 and Exp 2 share pretraining runs (each run evaluates both protocols), and
 Exp 3, 4 and 5 share the size-F CLAW runs, so a run needed by several experiments runs once.
 
 Scales:
@@ -21,17 +27,26 @@ Scales:
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
+import fcntl
 import json
 import os
 import shlex
+import shutil
+import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
+
+import submitit
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPTS = {m: f"{m}_tdmpc2.py" for m in ("claw", "dr", "st", "oracle", "film", "concat", "posthoc")}
 # Paper Table "Experiment 3 model-size sweep": LoRA rank tied to size.
+LOCK = "run.lock"  # held by the process that runs the run, for the run's lifetime (lock_run)
 SIZE_RANKS = {"A": 16, "B": 16, "D": 16, "E": 16, "F": 8, "G": 4, "H": 2, "I": 1}
 
 SCALES = {
@@ -83,11 +98,12 @@ class Run:
     def name(self) -> str:
         return f"{self.method}__{self.family}__{self.size}__r{self.rank}__s{self.seed}"
 
-    def command(self, run_dir: str) -> list[str]:
+    def command(self, run_dir: str, cuda: bool = False) -> list[str]:
         family = [] if self.method == "posthoc" else ["--family", self.family]
         rank = [] if self.method in ("film", "concat") else ["--rank", str(self.rank)]  # no LoRA, no rank
+        device = [] if cuda else ["--no-cuda"]
         return [sys.executable, os.path.join(REPO, SCRIPTS[self.method]), *family, "--model-size", self.size,
-                *rank, "--seed", str(self.seed), "--no-cuda", "--run-dir", run_dir, *self.extra]
+                *rank, "--seed", str(self.seed), *device, "--run-dir", run_dir, *self.extra]
 
 
 def recipe(experiment: str, scale: str) -> list[Run]:
@@ -162,68 +178,325 @@ def write_status(run_dir: str, run: Run, command: list[str], status: str, **extr
     os.replace(os.path.join(run_dir, "run.json.tmp"), os.path.join(run_dir, "run.json"))
 
 
-def launch(runs: list[Run], root: str, workers: int, dry_run: bool) -> int:
-    """Run every unfinished run with at most `workers` processes; returns the number that failed."""
+def lock_run(run_dir: str, wait_s: float = 0.0) -> int | None:
+    """A descriptor holding the run's exclusive lock, or None while another live process holds it.
+
+    flock locks belong to the open file, so the kernel drops them when every process holding the
+    descriptor is gone, however it died: a lock never goes stale. The script inherits the descriptor,
+    so the lock outlives a killed launcher for as long as the run itself lives.
+    """
+    os.makedirs(run_dir, exist_ok=True)
+    fd = os.open(os.path.join(run_dir, LOCK), os.O_RDWR | os.O_CREAT, 0o644)
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return fd
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                os.close(fd)
+                return None
+            time.sleep(min(1.0, wait_s))
+
+
+def run_is_live(run_dir: str) -> bool:
+    """Whether a live process holds the run's lock (the run is running now)."""
+    if not os.path.isfile(os.path.join(run_dir, LOCK)):
+        return False
+    fd = lock_run(run_dir)
+    if fd is None:
+        return True
+    os.close(fd)
+    return False
+
+
+def resume_args(run_dir: str) -> list[str]:
+    checkpoint = os.path.join(run_dir, "checkpoint.pt")
+    return ["--resume", checkpoint] if os.path.isfile(checkpoint) else []
+
+
+def recorded_command(record: dict) -> list[str]:
+    """The recorded command without its interpreter and --resume: what the recipe decides."""
+    words = shlex.split(record.get("command", ""))[1:]
+    if "--resume" in words:
+        at = words.index("--resume")
+        del words[at:at + 2]
+    return words
+
+
+_STOP = threading.Event()  # set when a local sweep is interrupted: no new runs, and runs end as "interrupted"
+
+
+class RunJob(submitit.helpers.Checkpointable):
+    """Runs one sweep run, holding its lock; the same callable for the local and the SLURM engine.
+
+    Returns the run's final status, or "busy" when another live process owns the run.
+    """
+
+    def __init__(self):
+        self.process = None
+
+    def __call__(self, run: Run, run_dir: str, env: dict, cuda: bool = False, lock_wait_s: float = 0.0) -> str:
+        fd = lock_run(run_dir, lock_wait_s)
+        if fd is None:
+            return "busy"
+        try:
+            if read_status(run_dir).get("status") == "done":  # finished by another launcher's job meanwhile
+                return "done"
+            if _STOP.is_set():
+                return "interrupted"
+            command = run.command(run_dir, cuda)
+            resume = resume_args(run_dir)
+            slurm_job = os.environ.get("SLURM_ARRAY_JOB_ID", os.environ.get("SLURM_JOB_ID"))
+            if slurm_job and "SLURM_ARRAY_TASK_ID" in os.environ:
+                slurm_job += "_" + os.environ["SLURM_ARRAY_TASK_ID"]
+            where = {"host": socket.gethostname(), **({"slurm_job": slurm_job} if slurm_job else {})}
+            write_status(run_dir, run, command, "running", resumed=bool(resume), **where)
+            start = time.time()
+            with open(os.path.join(run_dir, "stdout.log"), "a") as log:
+                # pass_fds: the script shares the lock (see lock_run)
+                self.process = subprocess.Popen(command + resume, cwd=REPO, env={**os.environ, **env}, stdout=log,
+                                                stderr=subprocess.STDOUT, pass_fds=(fd,))
+                try:
+                    # poll, not wait(): submitit's requeue handler runs checkpoint() -> stop() on this
+                    # thread, and a nested wait() would block on the lock the outer wait() holds
+                    while (returncode := self.process.poll()) is None:
+                        time.sleep(0.5)
+                except BaseException:  # SLURM requeue (SystemExit from submitit's signal handler) or Ctrl-C
+                    self.stop()
+                    raise
+            status = "interrupted" if _STOP.is_set() else "done" if returncode == 0 else "failed"
+            write_status(run_dir, run, command, status, resumed=bool(resume), returncode=returncode,
+                         seconds=round(time.time() - start, 1), **where)
+            return status
+        finally:
+            os.close(fd)
+
+    def stop(self, grace_s: float = 30.0):
+        """Ends the script (SIGTERM, then SIGKILL), with bounded waits: it resumes from its last checkpoint."""
+        process = self.process
+        for send, wait_s in ((process and process.terminate, grace_s), (process and process.kill, 10.0)):
+            if process is None or process.poll() is not None:
+                return
+            send()
+            deadline = time.monotonic() + wait_s
+            while process.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.2)
+
+    def checkpoint(self, run: Run, run_dir: str, env: dict, cuda: bool = False, lock_wait_s: float = 0.0):
+        """submitit calls this on preemption or time-out, then requeues the returned submission.
+
+        The script checkpoints every --checkpoint-every steps on its own; the requeued job finds that
+        checkpoint and passes --resume.
+        """
+        self.stop()
+        record = read_status(run_dir)
+        if record.get("status") == "running":
+            write_status(run_dir, run, run.command(run_dir, cuda), "requeued",
+                         **{k: record[k] for k in ("slurm_job", "host") if k in record})
+        return submitit.helpers.DelayedSubmission(RunJob(), run, run_dir, env, cuda, lock_wait_s)
+
+
+def slurm_queued(job_id: str | None) -> bool:
+    """Whether SLURM still lists the job (pending or running); False where squeue is absent."""
+    if not job_id or shutil.which("squeue") is None:
+        return False
+    try:
+        listed = subprocess.run(["squeue", "-h", "-o", "%i", "-j", job_id], capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        return True  # a busy controller: better to skip a run than to double it
+    return listed.returncode == 0 and bool(listed.stdout.strip())
+
+
+def pending_runs(runs: list[Run], root: str, cuda: bool = False) -> list[tuple[Run, str]]:
+    """The runs to start now, printing why each other run is skipped."""
     pending = []
     for run in runs:
         run_dir = os.path.join(root, run.name)
-        command = run.command(run_dir)
-        checkpoint = os.path.join(run_dir, "checkpoint.pt")
-        status = read_status(run_dir).get("status")
-        if status == "done":
+        command = run.command(run_dir, cuda)
+        record = read_status(run_dir)
+        if record and recorded_command(record) != command[1:]:  # the interpreter may differ between machines
+            print(f"changed      {run.name}: the recipe's command differs from the recorded one (run.json);"
+                  f" delete the run directory to rerun it\n  recorded {record.get('command')}\n  recipe   {shlex.join(command)}")
+        if record.get("status") == "done":
             print(f"skip (done)  {run.name}")
             continue
-        if os.path.isfile(checkpoint):
-            command += ["--resume", checkpoint]
-        print(("resume " if "--resume" in command else "run    ") + shlex.join(command))
-        pending.append((run, run_dir, command))
+        if run_is_live(run_dir):
+            print(f"skip (running) {run.name}")
+            continue
+        if record.get("status") in ("queued", "requeued") and slurm_queued(record.get("slurm_job")):
+            print(f"skip (queued {record['slurm_job']}) {run.name}")
+            continue
+        resume = resume_args(run_dir)
+        print(("resume " if resume else "run    ") + shlex.join(command + resume))
+        pending.append((run, run_dir))
+    return pending
+
+
+def launch(runs: list[Run], root: str, workers: int | None, dry_run: bool, launcher: str = "local",
+           slurm: dict | None = None) -> int:
+    """Run (local) or submit (slurm) every run not finished nor live; returns the number that failed."""
+    slurm = slurm or {}
+    cuda = slurm.get("gpus_per_task", 0) > 0
+    pending = pending_runs(runs, root, cuda)
     if dry_run or not pending:
         return 0
     # small networks: cores/workers BLAS/OpenMP threads per run, or parallel runs thrash each
     # other's threads; an OMP_NUM_THREADS already set (e.g. beside another sweep) wins
-    threads = os.environ.get("OMP_NUM_THREADS") or str(max(1, (os.cpu_count() or 1) // workers))
-    env = dict(os.environ, OMP_NUM_THREADS=threads, MUJOCO_GL=os.environ.get("MUJOCO_GL", "disable"))
-    active, failed = [], 0
-    while pending or active:
-        while pending and len(active) < workers:
-            run, run_dir, command = pending.pop(0)
-            write_status(run_dir, run, command, "running")
-            log = open(os.path.join(run_dir, "stdout.log"), "a")
-            active.append((run, run_dir, command, subprocess.Popen(command, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT), log, time.time()))
-        time.sleep(1.0)
-        for item in list(active):
-            run, run_dir, command, process, log, start = item
-            if process.poll() is None:
-                continue
-            active.remove(item)
-            log.close()
-            status = "done" if process.returncode == 0 else "failed"
-            failed += status == "failed"
-            write_status(run_dir, run, command, status, returncode=process.returncode, seconds=round(time.time() - start, 1))
-            print(f"{status:6s} {run.name} ({time.time() - start:.0f} s)", flush=True)
+    if launcher == "slurm":
+        threads = os.environ.get("OMP_NUM_THREADS") or str(slurm.get("cpus_per_task", 1))
+    else:
+        threads = os.environ.get("OMP_NUM_THREADS") or str(max(1, (os.cpu_count() or 1) // (workers or 1)))
+    env = {"OMP_NUM_THREADS": threads, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "disable")}
+    if launcher == "slurm":
+        return submit_slurm(pending, root, env, cuda, workers, slurm)
+    return run_local(pending, env, workers or 1)
+
+
+def run_local(pending: list[tuple[Run, str]], env: dict, workers: int) -> int:
+    """Runs on this machine, `workers` at a time.
+
+    Threads over RunJob rather than submitit's LocalExecutor: that one starts every job at once (no
+    cap on parallel runs) and kills each after its timeout_min; DebugExecutor runs one at a time.
+    The threads only wait on their scripts' processes.
+    """
+    jobs = [RunJob() for _ in pending]
+    _STOP.clear()
+
+    def interrupt(signum, frame):  # end the scripts too, so that no run outlives its launcher unrecorded
+        _STOP.set()
+        for job in jobs:
+            if job.process is not None and job.process.poll() is None:
+                job.process.terminate()
+
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():
+        handlers = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    failed = 0
+    try:
+        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+            futures = {pool.submit(job, run, run_dir, env): run for job, (run, run_dir) in zip(jobs, pending)}
+            start = time.time()
+            for future in concurrent.futures.as_completed(futures):
+                status = future.result()
+                failed += status == "failed"
+                label = "skip (running)" if status == "busy" else f"{status:6s}"
+                print(f"{label} {futures[future].name} ({time.time() - start:.0f} s into the sweep)", flush=True)
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    if _STOP.is_set():
+        raise SystemExit("interrupted: rerun the same command to resume the unfinished runs")
     return failed
+
+
+def submit_slurm(pending: list[tuple[Run, str]], root: str, env: dict, cuda: bool, workers: int | None,
+                 slurm: dict) -> int:
+    """Submits the runs as one SLURM job array and returns; each array task runs RunJob on its node."""
+    executor = submitit.SlurmExecutor(folder=os.path.join(root, ".submitit", "%j"), max_num_timeout=slurm.get("max_requeues", 3))
+    parameters = {"job_name": "claw-sweep", "time": slurm.get("time", 60), "cpus_per_task": slurm.get("cpus_per_task", 1),
+                  "stderr_to_stdout": True,
+                  # the nodes unpickle RunJob from benchmarks.experiments
+                  "setup": [f"export PYTHONPATH={shlex.quote(REPO)}${{PYTHONPATH:+:$PYTHONPATH}}"],
+                  "additional_parameters": slurm.get("sbatch", {})}
+    for key in ("partition", "gpus_per_task"):
+        if slurm.get(key):
+            parameters[key] = slurm[key]
+    if workers:
+        parameters["array_parallelism"] = workers
+    executor.update_parameters(**parameters)
+    runs, run_dirs = zip(*pending)
+    # a requeued job may start while the killed one's processes are still being reaped: wait for its lock
+    jobs = executor.map_array(RunJob(), runs, run_dirs, [env] * len(runs), [cuda] * len(runs), [120.0] * len(runs))
+    for (run, run_dir), job in zip(pending, jobs):
+        write_status(run_dir, run, run.command(run_dir, cuda), "queued", slurm_job=job.job_id,
+                     slurm_log=str(job.paths.stdout))
+    print(f"submitted {len(jobs)} runs as SLURM job array {jobs[0].job_id.split('_')[0]}; follow with squeue, rerun "
+          f"this command to resubmit runs that died, aggregate once squeue lists none", flush=True)
+    return 0
+
+
+def parse_minutes(text: str) -> int:
+    """SLURM time limit as minutes: MINUTES, HH:MM:SS or D-HH:MM[:SS]."""
+    days, _, clock = text.rpartition("-")
+    parts = [int(p) for p in clock.split(":")]
+    if not 1 <= len(parts) <= 3 or (len(parts) == 1 and days) or any(p < 0 for p in parts):
+        raise ValueError(text)
+    if len(parts) == 1:
+        minutes = parts[0]
+    else:
+        hours, mins, secs = (parts + [0])[:3]
+        minutes = hours * 60 + mins + (secs > 0)
+    return int(days or 0) * 1440 + minutes
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("experiments", nargs="+", choices=["exp1", "exp2", "exp3", "exp4", "exp5"])
     parser.add_argument("--scale", choices=list(SCALES), default="paper")
-    parser.add_argument("--workers", type=int, default=1, help="parallel runs")
+    parser.add_argument("--launcher", choices=["local", "slurm"], default="local",
+                        help="local: runs on this machine; slurm: submits a job array and returns")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="parallel runs (local: default 1; slurm: array parallelism, default no cap)")
     parser.add_argument("--root", default=None, help="sweep directory (default runs/sweeps/{scale})")
     parser.add_argument("--methods", nargs="+", choices=list(SCRIPTS), default=None, help="only these methods' runs")
     parser.add_argument("--dry-run", action="store_true", help="list the commands and exit")
+    group = parser.add_argument_group("slurm", "options of --launcher slurm")
+    group.add_argument("--partition", default=None)
+    group.add_argument("--time", default=None, help="time limit per run: MINUTES, HH:MM:SS or D-HH:MM (default 60);"
+                       " a run that hits it is requeued and resumes from its checkpoint")
+    group.add_argument("--cpus-per-task", type=int, default=None, help="default 1; also the runs' OMP_NUM_THREADS")
+    group.add_argument("--gpus-per-task", type=int, default=None, help="default 0; >0 runs the scripts on CUDA")
+    group.add_argument("--max-requeues", type=int, default=None, help="time-outs before a run gives up (default 3)")
+    group.add_argument("--sbatch", action="append", default=[], metavar="KEY=VALUE",
+                       help="any other sbatch option, e.g. --sbatch qos=high --sbatch account=lab (repeatable)")
     cli = parser.parse_args(argv)
-    if cli.workers < 1:
-        raise SystemExit(f"error: --workers must be >= 1, got {cli.workers}")
+
+    def fail(message: str):  # one line, not argparse's usage block
+        raise SystemExit(f"experiments.py: error: {message}")
+
+    if cli.workers is not None and cli.workers < 1:
+        fail(f"--workers must be >= 1, got {cli.workers}")
+    slurm = {}
+    slurm_options = {"partition": cli.partition, "time": cli.time, "cpus_per_task": cli.cpus_per_task,
+                     "gpus_per_task": cli.gpus_per_task, "max_requeues": cli.max_requeues, "sbatch": cli.sbatch}
+    if cli.launcher == "local":
+        given = [f"--{k.replace('_', '-')}" for k, v in slurm_options.items() if v not in (None, [])]
+        if given:
+            fail(f"{', '.join(given)}: options of --launcher slurm only")
+    else:
+        if not cli.dry_run and shutil.which("sbatch") is None:
+            fail("--launcher slurm needs sbatch on PATH (run it on a SLURM login node)")
+        try:
+            slurm["time"] = parse_minutes(cli.time) if cli.time else 60
+        except ValueError:
+            fail(f"--time {cli.time!r}: expected MINUTES, HH:MM:SS or D-HH:MM")
+        for key in ("cpus_per_task", "gpus_per_task", "max_requeues"):
+            if slurm_options[key] is not None:
+                if slurm_options[key] < (1 if key == "cpus_per_task" else 0):
+                    fail(f"--{key.replace('_', '-')} {slurm_options[key]} is out of range")
+                slurm[key] = slurm_options[key]
+        if cli.partition:
+            slurm["partition"] = cli.partition
+        slurm["sbatch"] = {}
+        for option in cli.sbatch:
+            key, sep, value = option.lstrip("-").partition("=")
+            if not sep or not key or not all(c.isalnum() or c in "-_" for c in key):
+                fail(f"--sbatch {option!r}: expected KEY=VALUE, e.g. qos=high")
+            slurm["sbatch"][key.replace("-", "_")] = value
     root = cli.root or os.path.join("runs", "sweeps", cli.scale)
     if os.path.exists(root) and not os.path.isdir(root):
         raise SystemExit(f"error: --root {root!r} exists and is not a directory")
     runs = [r for r in plan_runs(cli.experiments, cli.scale) if cli.methods is None or r.method in cli.methods]
     print(f"{len(runs)} runs for {' '.join(cli.experiments)} at scale {cli.scale} in {root}")
-    failed = launch(runs, os.path.abspath(root), cli.workers, cli.dry_run)
+    failed = launch(runs, os.path.abspath(root), cli.workers, cli.dry_run, cli.launcher, slurm)
     if failed:
         raise SystemExit(f"{failed} run(s) failed; see their stdout.log and run.json")
 
 
 if __name__ == "__main__":
-    main()
+    # run through the package module, so that the jobs pickle RunJob as benchmarks.experiments.RunJob
+    sys.path.insert(0, REPO)
+    from benchmarks import experiments
+
+    experiments.main()

@@ -38,7 +38,7 @@ def test_paper_recipes_follow_the_tables():
 def test_launcher_dry_run_lists_commands_and_skips_finished(tmp_path, capsys):
     runs = experiments.plan_runs(["exp1"], "smoke")
     done_dir = tmp_path / runs[0].name
-    experiments.write_status(str(done_dir), runs[0], ["x"], "done")
+    experiments.write_status(str(done_dir), runs[0], runs[0].command(str(done_dir)), "done")
     interrupted = tmp_path / runs[1].name
     interrupted.mkdir()
     (interrupted / "checkpoint.pt").write_bytes(b"")
@@ -49,6 +49,70 @@ def test_launcher_dry_run_lists_commands_and_skips_finished(tmp_path, capsys):
     assert out.count("claw_tdmpc2.py") == len([r for r in runs if r.method == "claw"]) - 1
     with pytest.raises(SystemExit, match="unknown experiment"):
         experiments.recipe("exp9", "paper")
+
+
+def test_restarted_launcher_skips_live_runs_resumes_dead_ones_and_reports_changed_recipes(tmp_path, capsys):
+    live, dead, done = experiments.plan_runs(["exp1"], "smoke")[:3]
+    for run in (live, dead):
+        experiments.write_status(str(tmp_path / run.name), run, run.command(str(tmp_path / run.name)), "running")
+    held = experiments.lock_run(str(tmp_path / live.name))  # a live process (the first launcher's) owns it
+    (tmp_path / dead.name / "run.lock").touch()  # its process died: the lock file stays, the lock does not
+    (tmp_path / dead.name / "checkpoint.pt").write_bytes(b"")
+    changed = done.command(str(tmp_path / done.name))
+    changed[changed.index("--total-timesteps") + 1] = "999"
+    experiments.write_status(str(tmp_path / done.name), done, changed, "done")
+    try:
+        pending = experiments.pending_runs([live, dead, done], str(tmp_path))
+        assert [run for run, _ in pending] == [dead]
+        out = capsys.readouterr().out
+        assert f"skip (running) {live.name}" in out and f"skip (done)  {done.name}" in out
+        assert f"changed      {done.name}" in out and "--total-timesteps 999" in out
+        assert f"resume {experiments.shlex.join(dead.command(str(tmp_path / dead.name)))} --resume " in out
+        # the run itself checks the lock too (a second launcher's job racing the first): no process starts
+        assert experiments.RunJob()(live, str(tmp_path / live.name), {}) == "busy"
+        assert not (tmp_path / live.name / "stdout.log").exists()
+        assert experiments.run_is_live(str(tmp_path / live.name)) and not experiments.run_is_live(str(tmp_path / dead.name))
+        problems = dict(aggregate.summarize(aggregate.load_runs(str(tmp_path)))[2])
+        assert problems[str(tmp_path / live.name)].startswith("still running")
+        assert "it died" in problems[str(tmp_path / dead.name)]
+    finally:
+        os.close(held)
+    assert not experiments.run_is_live(str(tmp_path / live.name))
+
+
+def test_run_job_resumes_a_dead_run_holding_its_lock(tmp_path, monkeypatch):
+    run = experiments.plan_runs(["exp1"], "smoke")[0]
+    run_dir = tmp_path / run.name
+    run_dir.mkdir()
+    (run_dir / "checkpoint.pt").write_bytes(b"")
+    # stand-in script: prints its arguments and whether the run's lock is held while it runs
+    probe = ("import fcntl, os, sys; fd = os.open(os.path.join(os.path.dirname(sys.argv[-1]), 'run.lock'), os.O_RDWR)\n"
+             "try: fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB); print('lock free')\n"
+             "except BlockingIOError: print('lock held')\nprint(sys.argv[1:])")
+    monkeypatch.setattr(experiments.Run, "command", lambda self, run_dir, cuda=False: [experiments.sys.executable, "-c", probe])
+    assert experiments.RunJob()(run, str(run_dir), {"OMP_NUM_THREADS": "1"}) == "done"
+    log = (run_dir / "stdout.log").read_text()
+    assert "lock held" in log and f"'--resume', '{run_dir / 'checkpoint.pt'}'" in log
+    record = experiments.read_status(str(run_dir))
+    assert record["status"] == "done" and record["resumed"] and record["returncode"] == 0
+    assert "--resume" not in record["command"]  # the recipe's command, compared on restarts
+    # preemption: submitit requeues the same run, which then resumes from its checkpoint
+    experiments.write_status(str(run_dir), run, ["x"], "running")
+    delayed = experiments.RunJob().checkpoint(run, str(run_dir), {}, False, 120.0)
+    assert isinstance(delayed.function, experiments.RunJob) and delayed.args == (run, str(run_dir), {}, False, 120.0)
+    assert experiments.read_status(str(run_dir))["status"] == "requeued"
+
+
+def test_launcher_arguments_fail_in_one_line(capsys):
+    for argv, message in ((["--partition", "gpu"], "--partition: options of --launcher slurm only"),
+                          (["--launcher", "slurm", "--dry-run", "--time", "soon"], "--time 'soon': expected"),
+                          (["--launcher", "slurm", "--dry-run", "--sbatch", "qos"], "--sbatch 'qos': expected KEY=VALUE"),
+                          (["--workers", "0"], "--workers must be >= 1, got 0")):
+        with pytest.raises(SystemExit, match=message):
+            experiments.main(["exp1", *argv])
+    assert [experiments.parse_minutes(t) for t in ("90", "01:30:00", "1:00:01", "2-00:30")] == [90, 90, 61, 2910]
+    experiments.main(["exp1", "--scale", "smoke", "--launcher", "slurm", "--dry-run", "--gpus-per-task", "1", "--root", "x"])
+    assert "--no-cuda" not in capsys.readouterr().out  # GPU runs use CUDA
 
 
 def test_grouping_reports_incomplete_runs(tmp_path):
