@@ -15,11 +15,15 @@ start=$(date +%s)
 
 if ! command -v slurmctld >/dev/null || ! command -v munged >/dev/null; then
     # no service starts during the install: this script runs its own daemons, with its own config
-    policy=/usr/sbin/policy-rc.d
-    [ -e $policy ] || { printf '#!/bin/sh\nexit 101\n' > $policy; chmod +x $policy; trap 'rm -f $policy' EXIT; }
+    # (policy-rc.d; one already there, e.g. in a container, is left as it is)
+    policy=/usr/sbin/policy-rc.d created=
+    if [ ! -e $policy ]; then
+        printf '#!/bin/sh\nexit 101\n' > $policy && chmod +x $policy && created=1
+        trap 'rm -f $policy' EXIT
+    fi
     timeout 600 apt-get update -qq
     DEBIAN_FRONTEND=noninteractive timeout 600 apt-get install -y -qq --no-install-recommends slurm-wlm munge >/dev/null
-    rm -f $policy; trap - EXIT
+    [ -z "$created" ] || { rm -f $policy; trap - EXIT; }
 fi
 
 tmp=$(mktemp -d /tmp/slurm_ci.XXXXXX)
