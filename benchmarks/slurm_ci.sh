@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # CI check of `experiments.py --launcher slurm` against a real SLURM: installs Debian's slurm-wlm and
 # munge, starts a one-node cluster on this machine with all its state in a fresh temporary directory,
-# submits the two-run smoke sweep, waits for it, aggregates it, checks both runs are done, and
-# shuts the daemons down on any exit. Needs root and apt-get (a fresh Debian 12 CI machine).
+# submits the two-run smoke sweep, waits for it, aggregates it, checks both runs are done, preempts
+# one more run and checks it resumes from its checkpoint, and shuts the daemons down on any exit. Needs root and apt-get (a fresh Debian 12 CI machine).
 #
 #   benchmarks/slurm_ci.sh [python]      # default: .venv/bin/python of this checkout
 set -euo pipefail
@@ -120,5 +120,46 @@ records = {os.path.basename(os.path.dirname(p)): json.load(open(p)) for p in glo
 print({name: (r["status"], r.get("slurm_job")) for name, r in records.items()})
 assert len(records) == 2 and all(r["status"] == "done" and r.get("slurm_job") for r in records.values()), records
 assert all(r["command"].startswith(sys.argv[2] + " ") for r in records.values()), "the jobs ran another python"
+EOF
+echo "slurm_ci: sweep checked after $(( $(date +%s) - start )) s"
+
+# preemption: USR2 (what SLURM sends before a preemption or the --time limit) to a run's job
+# requeues it (submitit), and the requeued job resumes the run from its checkpoint
+preempt=$tmp/preempt
+MUJOCO_GL=disable timeout 120 "$python" - "$preempt" <<'EOF'
+import sys
+from benchmarks import experiments
+run = [r for r in experiments.plan_runs(["exp1"], "smoke") if r.method == "claw"][0]
+run.extra[run.extra.index("--total-timesteps") + 1] = "1200"  # long enough to be preempted mid-run
+run.extra += ["--checkpoint-every", "200"]
+experiments.launch([run], sys.argv[1], None, False, "slurm", {"time": 10, "cpus_per_task": 1})
+EOF
+run_dir=$(dirname "$(ls "$preempt"/*/run.json)")
+for i in $(seq 300); do
+    [ -f "$run_dir/checkpoint.pt" ] && break
+    [ "$i" = 300 ] && { echo "slurm_ci: no checkpoint after 5 min" >&2; exit 1; }
+    sleep 1
+done
+job=$("$python" -c 'import json, sys; print(json.load(open(sys.argv[1]))["slurm_job"])' "$run_dir/run.json")
+echo "slurm_ci: preempting job $job"
+timeout 10 scancel --signal=USR2 "$job"
+released=
+for i in $(seq 600); do
+    state=$(timeout 10 squeue -h -o "%T %r" -j "$job" 2>/dev/null || true)
+    [ -z "$state" ] && break
+    if [ -z "$released" ] && [ "$state" = "PENDING BeginTime" ]; then
+        # SLURM holds a requeued job back for two minutes: start it now
+        timeout 10 scontrol update JobId="$job" StartTime=now && released=1
+    fi
+    [ "$i" = 600 ] && { echo "slurm_ci: the requeued job still runs after 10 min" >&2; squeue; exit 1; }
+    sleep 1
+done
+[ -n "$released" ] || { echo "slurm_ci: the job was not requeued" >&2; exit 1; }
+"$python" - "$run_dir" <<'EOF'
+import json, os, sys
+record = json.load(open(os.path.join(sys.argv[1], "run.json")))
+log = open(os.path.join(sys.argv[1], "stdout.log")).read()
+print({k: record.get(k) for k in ("status", "resumed", "slurm_job")})
+assert record["status"] == "done" and record["resumed"] and "resumed from" in log, (record, log[-2000:])
 EOF
 echo "slurm_ci: passed in $(( $(date +%s) - start )) s"
