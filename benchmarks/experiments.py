@@ -233,8 +233,11 @@ class RunJob(submitit.helpers.Checkpointable):
     Returns the run's final status, or "busy" when another live process owns the run.
     """
 
-    def __init__(self):
+    def __init__(self, die_with_launcher: bool = False):
         self.process = None
+        # local runs end with their launcher (SIGTERM on its death, via setpriv where it exists), as a
+        # run that outlived it would finish unrecorded; SLURM ends a job's processes itself
+        self.prefix = ["setpriv", "--pdeathsig", "TERM"] if die_with_launcher and shutil.which("setpriv") else []
 
     def __call__(self, run: Run, run_dir: str, env: dict, cuda: bool = False, lock_wait_s: float = 0.0) -> str:
         fd = lock_run(run_dir, lock_wait_s)
@@ -255,7 +258,7 @@ class RunJob(submitit.helpers.Checkpointable):
             start = time.time()
             with open(os.path.join(run_dir, "stdout.log"), "a") as log:
                 # pass_fds: the script shares the lock (see lock_run)
-                self.process = subprocess.Popen(command + resume, cwd=REPO, env={**os.environ, **env}, stdout=log,
+                self.process = subprocess.Popen(self.prefix + command + resume, cwd=REPO, env={**os.environ, **env}, stdout=log,
                                                 stderr=subprocess.STDOUT, pass_fds=(fd,))
                 try:
                     # poll, not wait(): submitit's requeue handler runs checkpoint() -> stop() on this
@@ -360,7 +363,7 @@ def run_local(pending: list[tuple[Run, str]], env: dict, workers: int) -> int:
     cap on parallel runs) and kills each after its timeout_min; DebugExecutor runs one at a time.
     The threads only wait on their scripts' processes.
     """
-    jobs = [RunJob() for _ in pending]
+    jobs = [RunJob(die_with_launcher=True) for _ in pending]
     _STOP.clear()
 
     def interrupt(signum, frame):  # end the scripts too, so that no run outlives its launcher unrecorded
