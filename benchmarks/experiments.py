@@ -183,7 +183,7 @@ def lock_run(run_dir: str, wait_s: float = 0.0) -> int | None:
 
     flock locks belong to the open file, so the kernel drops them when every process holding the
     descriptor is gone, however it died: a lock never goes stale. The script inherits the descriptor,
-    so the lock outlives a killed launcher for as long as the run itself lives.
+    so a script that outlives its launcher still holds the lock.
     """
     os.makedirs(run_dir, exist_ok=True)
     fd = os.open(os.path.join(run_dir, LOCK), os.O_RDWR | os.O_CREAT, 0o644)
@@ -258,8 +258,8 @@ class RunJob(submitit.helpers.Checkpointable):
             start = time.time()
             with open(os.path.join(run_dir, "stdout.log"), "a") as log:
                 # pass_fds: the script shares the lock (see lock_run)
-                self.process = subprocess.Popen(self.prefix + command + resume, cwd=REPO, env={**os.environ, **env}, stdout=log,
-                                                stderr=subprocess.STDOUT, pass_fds=(fd,))
+                self.process = subprocess.Popen(self.prefix + command + resume, cwd=REPO, env={**os.environ, **env},
+                                                stdout=log, stderr=subprocess.STDOUT, pass_fds=(fd,))
                 try:
                     # poll, not wait(): submitit's requeue handler runs checkpoint() -> stop() on this
                     # thread, and a nested wait() would block on the lock the outer wait() holds
@@ -278,8 +278,10 @@ class RunJob(submitit.helpers.Checkpointable):
     def stop(self, grace_s: float = 30.0):
         """Ends the script (SIGTERM, then SIGKILL), with bounded waits: it resumes from its last checkpoint."""
         process = self.process
-        for send, wait_s in ((process and process.terminate, grace_s), (process and process.kill, 10.0)):
-            if process is None or process.poll() is not None:
+        if process is None:
+            return
+        for send, wait_s in ((process.terminate, grace_s), (process.kill, 10.0)):
+            if process.poll() is not None:
                 return
             send()
             deadline = time.monotonic() + wait_s
