@@ -51,8 +51,8 @@ def test_launcher_dry_run_lists_commands_and_skips_finished(tmp_path, capsys):
         experiments.recipe("exp9", "paper")
 
 
-def test_restarted_launcher_skips_live_runs_resumes_dead_ones_and_reports_changed_recipes(tmp_path, capsys):
-    live, dead, done = experiments.plan_runs(["exp1"], "smoke")[:3]
+def test_restarted_launcher_skips_live_runs_resumes_dead_ones_and_reports_changed_recipes(tmp_path, capsys, monkeypatch):
+    live, dead, done, queued = experiments.plan_runs(["exp1"], "smoke")[:4]
     for run in (live, dead):
         experiments.write_status(str(tmp_path / run.name), run, run.command(str(tmp_path / run.name)), "running")
     held = experiments.lock_run(str(tmp_path / live.name))  # a live process (the first launcher's) owns it
@@ -61,11 +61,15 @@ def test_restarted_launcher_skips_live_runs_resumes_dead_ones_and_reports_change
     changed = done.command(str(tmp_path / done.name))
     changed[changed.index("--total-timesteps") + 1] = "999"
     experiments.write_status(str(tmp_path / done.name), done, changed, "done")
+    experiments.write_status(str(tmp_path / queued.name), queued, queued.command(str(tmp_path / queued.name)), "queued",
+                             slurm_job="12_3")  # submitted by an earlier launcher, still pending in SLURM
+    monkeypatch.setattr(experiments, "slurm_queued", lambda job_id: job_id == "12_3")
     try:
-        pending = experiments.pending_runs([live, dead, done], str(tmp_path))
+        pending = experiments.pending_runs([live, dead, done, queued], str(tmp_path))
         assert [run for run, _ in pending] == [dead]
         out = capsys.readouterr().out
         assert f"skip (running) {live.name}" in out and f"skip (done)  {done.name}" in out
+        assert f"skip (queued 12_3) {queued.name}" in out
         assert f"changed      {done.name}" in out and "--total-timesteps 999" in out
         assert f"resume {experiments.shlex.join(dead.command(str(tmp_path / dead.name)))} --resume " in out
         # the run itself checks the lock too (a second launcher's job racing the first): no process starts
@@ -101,6 +105,39 @@ def test_run_job_resumes_a_dead_run_holding_its_lock(tmp_path, monkeypatch):
     delayed = experiments.RunJob().checkpoint(run, str(run_dir), {}, False, 120.0)
     assert isinstance(delayed.function, experiments.RunJob) and delayed.args == (run, str(run_dir), {}, False, 120.0)
     assert experiments.read_status(str(run_dir))["status"] == "requeued"
+
+
+def test_slurm_launcher_submits_one_array_with_the_cli_resources(tmp_path, monkeypatch, capsys):
+    submitted = {}
+
+    class FakeExecutor:  # stands in for submitit.SlurmExecutor (CI runs the real one: benchmarks/slurm_ci.sh)
+        def __init__(self, folder, max_num_timeout):
+            submitted.update(folder=folder, max_num_timeout=max_num_timeout)
+
+        def update_parameters(self, **parameters):
+            submitted["parameters"] = parameters
+
+        def map_array(self, fn, *columns):
+            submitted["fn"], submitted["columns"] = fn, columns
+            return [type("Job", (), {"job_id": f"7_{i}", "paths": type("P", (), {"stdout": f"log{i}"})})()
+                    for i in range(len(columns[0]))]
+
+    monkeypatch.setattr(experiments.submitit, "SlurmExecutor", FakeExecutor)
+    monkeypatch.setattr(experiments.shutil, "which", lambda name: "/usr/bin/" + name)
+    monkeypatch.setattr(experiments, "slurm_queued", lambda job_id: False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    experiments.main(["exp1", "--scale", "smoke", "--methods", "claw", "--launcher", "slurm", "--root", str(tmp_path),
+                      "--partition", "gpu", "--time", "2:00:00", "--cpus-per-task", "4", "--gpus-per-task", "1",
+                      "--workers", "8", "--sbatch", "qos=high", "--sbatch", "mem-per-cpu=2G"])
+    parameters = submitted["parameters"]
+    assert (parameters["partition"], parameters["time"], parameters["cpus_per_task"], parameters["gpus_per_task"]) == ("gpu", 120, 4, 1)
+    assert parameters["array_parallelism"] == 8 and parameters["additional_parameters"] == {"qos": "high", "mem_per_cpu": "2G"}
+    assert isinstance(submitted["fn"], experiments.RunJob)
+    runs, run_dirs, envs, cudas, _ = submitted["columns"]
+    assert len(runs) == 2 and all(cudas) and envs[0]["OMP_NUM_THREADS"] == "4"  # threads follow --cpus-per-task
+    assert [experiments.read_status(d)["slurm_job"] for d in run_dirs] == ["7_0", "7_1"]
+    assert all(experiments.read_status(d)["status"] == "queued" for d in run_dirs)
+    assert "submitted 2 runs as SLURM job array 7" in capsys.readouterr().out
 
 
 def test_launcher_arguments_fail_in_one_line(capsys):
