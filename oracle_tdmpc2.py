@@ -35,7 +35,7 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from common.context import collect_episodes
-from common.envs import FAMILIES, episode_length, is_metaworld, make_env, num_envs
+from common.envs import FAMILIES, episode_length, is_metaworld, make_env, num_envs, render_problem
 from common.evaluation import mean_ci, offline_adaptation, online_adaptation
 
 # Paper Table "Per-family pretraining setup" (cheetah_walker: Exp 3-5, 250k per task).
@@ -139,9 +139,18 @@ class Args:
     eval_only: bool = False
     resume: Optional[str] = None
     """checkpoint of a killed run to continue with its saved arguments (only --threads, --cuda, --run-dir, --log-every,
-    --checkpoint-every, --checkpoint-minutes may be given anew)"""
+    --checkpoint-every, --checkpoint-minutes, --track, --wandb-project-name, --wandb-entity, --capture-video may be given anew)"""
     run_dir: Optional[str] = None
     """default runs/{family}__{exp_name}__{seed}__{unix time}"""
+    track: bool = False
+    """mirror the TensorBoard scalars and the hyperparameters to Weights & Biases (WANDB_MODE=offline: no network needed)"""
+    wandb_project_name: str = "claw"
+    """the Weights & Biases project"""
+    wandb_entity: Optional[str] = None
+    """the Weights & Biases entity (team); default: your default entity"""
+    capture_video: bool = False
+    """record the first Exp 2 (offline) episode of every test environment (of every --offline-adapt-steps setting, where there is
+    a sweep) to {run_dir}/videos/env{id}_offline*.mp4; needs MUJOCO_GL=egl (GPU, or Mesa's software EGL) or MUJOCO_GL=osmesa (CPU)"""
 
 
 def validate_args(args: Args) -> tuple[int, int, int]:
@@ -603,7 +612,8 @@ def make_optimizers(model: WorldModel, args: Args):
 # Run plumbing: argument checks, checked checkpoints, progress
 # ---------------------------------------------------------------------------------------------
 # flags that cannot change a run's results: --resume takes them anew if given, else from the checkpoint
-RESUME_FREE = ("threads", "cuda", "log_every", "checkpoint_every", "checkpoint_minutes")
+RESUME_FREE = ("threads", "cuda", "log_every", "checkpoint_every", "checkpoint_minutes", "track", "wandb_project_name", "wandb_entity",
+               "capture_video")
 NOT_SAVED = ("run_dir", "resume", "checkpoint", "eval_only", "dry_run")  # this invocation's own
 
 
@@ -829,7 +839,7 @@ def evaluate(model, scale, layout, n_adapt, discount, writer, device, args: Args
         results["online"][env_id], results["offline"][env_id] = online, {}
         for steps in args.offline_adapt_steps:  # Exp 2: fresh adapters, `steps` gradient steps, frozen
             reset_adapters(context)
-            offline = offline_adaptation(env, context, lambda c: adapt(c, steps), act, args.eval_episodes, seed=args.seed + 40_000 + env_id, desc=f"eval env {env_id} offline")
+            offline = offline_adaptation(env, context, lambda c: adapt(c, steps), act, args.eval_episodes, seed=args.seed + 40_000 + env_id, desc=f"eval env {env_id} offline", video=args.capture_video and f"{writer.log_dir}/videos/env{env_id}_offline_{steps}steps.mp4")
             offline_return = float(np.mean([r["return"] for r in offline]))
             writer.add_scalar(f"eval/offline/env{env_id}/episodic_return", offline_return, steps)
             writer.add_scalar(f"eval/offline/env{env_id}/success", float(np.mean([r["success"] for r in offline])), steps)
@@ -889,12 +899,20 @@ def main(args: Args):
     if args.dry_run:
         return
     print(describe_device(args, device))
+    if args.capture_video and (problem := render_problem(args.family)):  # one line at the start, not a traceback at the first video
+        print(f"warning: --capture-video records nothing: {problem}", flush=True)
+        args.capture_video = False
     if not args.eval_only:
         print(f"budget: {total_timesteps} agent steps: a {prefill}-step random prefill, {args.burst_updates} burst updates, then training", flush=True)
 
     if args.resume and args.run_dir is None:  # keep logging into the interrupted run
         args.run_dir = os.path.dirname(os.path.abspath(args.resume))
     run_dir = args.run_dir or f"runs/{args.family}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if args.track:  # before the SummaryWriter, whose scalars W&B mirrors (sync_tensorboard)
+        import wandb
+
+        wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, sync_tensorboard=True, config=vars(args),
+                   name=os.path.basename(os.path.abspath(run_dir)), save_code=True)
     writer = SummaryWriter(run_dir, purge_step=purge_step)  # a resumed run replaces the events logged after its checkpoint
     writer.add_text("hyperparameters", hyperparameter_text(args, total_timesteps=total_timesteps, seed_steps=seed_steps, discount=discount, device=device))
     scale = RunningScale(args.tau, device)
@@ -902,6 +920,8 @@ def main(args: Args):
         load_checkpoint(args.checkpoint, model, scale=scale)
         evaluate(model, scale, layout, n_wm + n_pi, discount, writer, device, args)
         writer.close()
+        if args.track:
+            wandb.finish()
         return
 
     optimizers = make_optimizers(model, args)
@@ -969,6 +989,8 @@ def main(args: Args):
     if args.evaluate_after_training:
         evaluate(model, scale, layout, n_wm + n_pi, discount, writer, device, args)
     writer.close()
+    if args.track:
+        wandb.finish()
 
 
 if __name__ == "__main__":

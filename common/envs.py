@@ -24,6 +24,11 @@ family, the flag is the natural analogue and keeps the interface uniform.
 
 dm_control and Meta-World use action repeat 2 (rewards summed); Go1 applies each action for
 one 20 ms control period instead.
+
+``env.render()`` returns an RGB frame (``RENDER_SIZE``) of the current state through
+``mujoco.Renderer``: a tracking camera (dm_control "side", Go1 "tracking"), Meta-World's "corner2".
+It needs a GL backend, chosen from ``MUJOCO_GL`` when MuJoCo is imported: ``egl`` (GPU, or Mesa's
+software EGL) or ``osmesa`` (CPU); ``render_problem(family)`` says in one line why it cannot.
 """
 
 from __future__ import annotations
@@ -46,6 +51,7 @@ from gymnasium.utils import seeding
 FAMILIES: tuple[str, ...] = ("walker", "reach", "push", "go1", "cheetah_walker")
 
 ACTION_REPEAT = 2  # dm_control and Meta-World only
+RENDER_SIZE = (240, 320)  # video frames: height, width
 
 _NUM_ENVS = {"walker": 20, "reach": 6, "push": 6, "go1": 2, "cheetah_walker": 2}
 _EPISODE_LENGTH = {"walker": 500, "reach": 100, "push": 100, "go1": 1000, "cheetah_walker": 500}
@@ -120,11 +126,29 @@ def _action_box(dim: int) -> spaces.Box:
 
 
 class _SeededEnv(gymnasium.Env):
-    """Base: a constructor seed makes the first ``reset()`` equal to ``reset(seed=seed)``."""
+    """Base: a constructor seed makes the first ``reset()`` equal to ``reset(seed=seed)``; ``render()``
+    draws the subclass's ``_scene()`` = (MjModel, MjData, camera, agent-step seconds)."""
+
+    render_mode = "rgb_array"
+    _renderer = None  # created at the first render(): a GL context only where frames are asked for
 
     def __init__(self, seed: int | None):
         if seed is not None:
             self.np_random = seeding.np_random(seed)[0]
+
+    @property
+    def metadata(self) -> dict:
+        return {"render_modes": ["rgb_array"], "render_fps": round(1 / self._scene()[3])}
+
+    def render(self) -> np.ndarray:
+        """RGB frame [*RENDER_SIZE, 3] (uint8) of the current state."""
+        model, data, camera, _ = self._scene()
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(model, *RENDER_SIZE)
+        self._renderer.update_scene(data, camera=camera)
+        self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False  # software GL (osmesa): 2-5x faster
+        self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+        return self._renderer.render()
 
 
 # ---------------------------------------------------------------------------------- dm_control
@@ -171,6 +195,10 @@ class DMCEnv(_SeededEnv):
     @property
     def physics(self):
         return self._dmc.physics
+
+    def _scene(self):
+        physics = self._dmc.physics
+        return physics.model.ptr, physics.data.ptr, "side", ACTION_REPEAT * self._dmc.control_timestep()
 
     def close(self):
         self._dmc.close()
@@ -226,6 +254,9 @@ class MetaWorldEnv(_SeededEnv):
 
     def close(self):
         self._mw.close()
+
+    def _scene(self):
+        return self._mw.model, self._mw.data, "corner2", ACTION_REPEAT * self._mw.dt
 
     @property
     def goal(self) -> np.ndarray:
@@ -284,6 +315,9 @@ class Go1Env(_SeededEnv):
         self.observation_space = _box(39)
         self.action_space = _action_box(self.model.nu)
 
+    def _scene(self):
+        return self.model, self.data, "tracking", GO1_CONTROL_DT
+
     def _foot_contacts(self) -> np.ndarray:
         geoms = self.data.contact.geom[: self.data.ncon]
         with_floor = geoms[(geoms == self._floor).any(axis=1)]
@@ -330,6 +364,20 @@ class Go1Env(_SeededEnv):
         # mj_step leaves xmat/contacts at the pre-step state; refresh so obs and reward match qpos.
         mujoco.mj_forward(self.model, self.data)
         return self._obs(), self._reward(), False, False, {"success": 0.0}
+
+
+def render_problem(family: str) -> str | None:
+    """None if this machine renders ``family``, else the reason in one line."""
+    env = make_env(family, 0)
+    try:
+        env.render()
+        return None
+    except Exception as error:  # noqa: BLE001 - each GL backend fails in its own way
+        gl = os.environ.get("MUJOCO_GL")
+        return (f"MuJoCo cannot render {family} with MUJOCO_GL={gl} ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
+                "run with MUJOCO_GL=egl (GPU, or Debian libegl1 libgl1-mesa-dri) or MUJOCO_GL=osmesa (CPU, Debian libosmesa6)")
+    finally:
+        env.close()
 
 
 # ---------------------------------------------------------------------------------- factory

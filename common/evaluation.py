@@ -47,20 +47,34 @@ def online_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_steps:
     return records
 
 
-def offline_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_episodes: int, seed: int, desc: str | None = None) -> list[dict]:
+def offline_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_episodes: int, seed: int, desc: str | None = None,
+                       video: str | bool | None = None) -> list[dict]:
     """Exp 2: adapt once on the fixed context data, freeze, and evaluate `num_episodes` episodes
-    (desc: label of a progress bar over them)."""
+    (desc: label of a progress bar over them). video: an .mp4 path that records the first episode (falsy: none)."""
     adapt(context)
     records = []
     for episode in progress_bar(range(num_episodes), desc=desc) if desc else range(num_episodes):
         obs, _ = env.reset(seed=seed + episode)
         first_step, episode_return, done = True, 0.0, False
+        frames = [env.render()] if video and episode == 0 else None
         while not done:
             obs, reward, terminated, truncated, info = env.step(act(obs, first_step))
             episode_return += float(reward)
             first_step, done = False, terminated or truncated
+            if frames is not None:
+                frames.append(env.render())
+        if frames is not None:
+            write_video(video, frames, env.metadata["render_fps"])
         records.append({"return": episode_return, "success": float(info.get("success", 0.0))})
     return records
+
+
+def write_video(path: str, frames: list, fps: int) -> None:
+    """H.264 .mp4 through imageio's ffmpeg plugin (imageio-ffmpeg ships the ffmpeg binary)."""
+    import imageio.v2 as imageio
+
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    imageio.mimwrite(path, frames, fps=fps, codec="libx264", quality=7, macro_block_size=16)
 
 
 def mean_ci(values, confidence: float = 0.95) -> tuple[float, float]:
