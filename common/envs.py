@@ -39,6 +39,7 @@ import os
 # setdefault keeps any backend the caller chose explicitly.
 os.environ.setdefault("MUJOCO_GL", "disable")
 
+import atexit
 import importlib.resources
 import pickle
 
@@ -145,6 +146,7 @@ class _SeededEnv(gymnasium.Env):
         model, data, camera, _ = self._scene()
         if self._renderer is None:
             self._renderer = mujoco.Renderer(model, *RENDER_SIZE)
+            atexit.register(self._renderer.close)  # EGL fails to free a context at interpreter teardown
         self._renderer.update_scene(data, camera=camera)
         self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False  # software GL (osmesa): 2-5x faster
         self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
@@ -257,6 +259,9 @@ class MetaWorldEnv(_SeededEnv):
 
     def _scene(self):
         return self._mw.model, self._mw.data, "corner2", ACTION_REPEAT * self._mw.dt
+
+    def render(self) -> np.ndarray:
+        return np.ascontiguousarray(super().render()[::-1, ::-1])  # Meta-World's corner cameras are rolled by 180 degrees
 
     @property
     def goal(self) -> np.ndarray:
