@@ -35,7 +35,7 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from common.context import collect_episodes
-from common.envs import FAMILIES, episode_length, is_metaworld, make_env, num_envs, render_problem
+from common.envs import FAMILIES, episode_length, is_metaworld, make_env, num_envs, render_problem, rng_state, set_rng_state
 from common.evaluation import mean_ci, offline_adaptation, online_adaptation
 
 # Paper Table "Per-family pretraining setup" (cheetah_walker: Exp 3-5, 250k per task).
@@ -766,14 +766,15 @@ def random_prefill(envs: dict, replay, total: int) -> int:
 # ---------------------------------------------------------------------------------------------
 # Persistence
 # ---------------------------------------------------------------------------------------------
-def save_checkpoint(path, global_step, burst_left, model, optimizers, scale, replay, args: Args):
+def save_checkpoint(path, global_step, burst_left, model, optimizers, scale, replay, args: Args, envs=()):
     state = {
         "global_step": global_step, "burst_left": burst_left, "args": vars(args), "model": model.state_dict(),
         "optimizers": [opt.state_dict() for opt in optimizers], "scale": scale.value.cpu(),
         "replay": replay.state_dict() if replay is not None else None,
         "method": os.path.basename(__file__), "dims": (model.obs_dim, model.act_dim),  # checked by read_checkpoint
         "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
-                "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None},
+                "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+                "envs": [rng_state(env) for env in envs]},  # the rollout environments: their next resets
     }
     torch.save(state, path + ".tmp")
     os.replace(path + ".tmp", path)  # atomic: a kill mid-save never leaves a truncated checkpoint
@@ -927,16 +928,18 @@ def main(args: Args):
     optimizers = make_optimizers(model, args)
     replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
-    global_step, burst_left, saved_at = 0, args.burst_updates, time.time()
+    global_step, burst_left, saved_at, saved_step = 0, args.burst_updates, time.time(), 0
 
     def save():  # atomic; also right after the prefill and the burst, and every --checkpoint-minutes
-        nonlocal saved_at
-        save_checkpoint(checkpoint_path, global_step, burst_left, model, optimizers, scale, replay, args)
-        saved_at = time.time()
+        nonlocal saved_at, saved_step
+        save_checkpoint(checkpoint_path, global_step, burst_left, model, optimizers, scale, replay, args, envs)
+        saved_at, saved_step = time.time(), global_step
 
     if args.resume:
         state = load_checkpoint(args.resume, model, optimizers, scale, replay, restore_rng=True)
-        global_step, burst_left = state["global_step"], state.get("burst_left", 0)
+        global_step, burst_left, saved_step = state["global_step"], state.get("burst_left", 0), state["global_step"]
+        for env, env_rng in zip(envs, state["rng"].get("envs", [])):  # checkpoints are written at episode ends
+            set_rng_state(env, env_rng)
         print(f"resumed from {args.resume} at step {global_step}", flush=True)
     else:
         global_step += random_prefill(dict(enumerate(envs)), replay, prefill)  # update buffers: every environment
@@ -949,11 +952,13 @@ def main(args: Args):
         burst_left = 0
         save()
 
-    rollout_env = random.randrange(n_envs)
-    obs, _ = envs[rollout_env].reset()
-    first, episode_return, prev_mean = True, 0.0, None
+    first = True  # an episode starts at the top of the loop, also where a resumed run continues
     start_time, start_step, recent = time.time(), global_step, deque(maxlen=10)  # recent: (return, success) of the last episodes
     while global_step < total_timesteps:
+        if first:  # a new episode in a rollout environment drawn per episode
+            rollout_env = random.randrange(n_envs)
+            obs, _ = envs[rollout_env].reset()
+            episode_return = 0.0
         # update the model on a training environment sampled per step
         k = random.randrange(n_envs)
         info = update(model, optimizers, scale, *replay.sample(k, args.batch_size), discount, args)
@@ -970,9 +975,7 @@ def main(args: Args):
             writer.add_scalar("charts/episodic_success", float(step_info.get("success", 0.0)), global_step)
             writer.add_scalar(f"charts/env{envs[rollout_env].unwrapped.env_id}/episodic_return", episode_return, global_step)
             recent.append((episode_return, float(step_info.get("success", 0.0))))
-            rollout_env = random.randrange(n_envs)
-            obs, _ = envs[rollout_env].reset()
-            first, episode_return = True, 0.0
+            first = True
         if global_step % args.log_every == 0 or global_step == total_timesteps:
             sps = int((global_step - start_step) / (time.time() - start_time))
             for key, value in info.items():
@@ -982,8 +985,8 @@ def main(args: Args):
             print(f"step {global_step}/{total_timesteps} | wm_loss {float(info['wm_loss']):.3f} | "
                   f"pi_loss {float(info['pi_loss']):.3f} | {progress_text(global_step, total_timesteps, start_step, start_time, started, recent, args.family)}", flush=True)
             writer.flush()
-        if global_step % args.checkpoint_every == 0 or time.time() - saved_at > 60 * args.checkpoint_minutes:
-            save()
+        if first and (global_step // args.checkpoint_every > saved_step // args.checkpoint_every or time.time() - saved_at > 60 * args.checkpoint_minutes):
+            save()  # deferred to an episode's end: a resumed run then starts the next episode as this run does
     save()
     print(f"saved {checkpoint_path}", flush=True)
     if args.evaluate_after_training:

@@ -385,6 +385,27 @@ def render_problem(family: str) -> str | None:
         env.close()
 
 
+# ---------------------------------------------------------------------------------- RNG state
+def rng_state(env: gymnasium.Env) -> dict:
+    """Every RNG the environment's next resets and ``action_space.sample()`` draw from (for an exact
+    resume at an episode boundary): gymnasium's ``np_random`` (Go1's reset noise), the action space's
+    generator and, for dm_control, ``task.random`` (its reset noise). Meta-World's reset is deterministic."""
+    base = env.unwrapped
+    state = {"np_random": base.np_random.bit_generator.state, "action_space": env.action_space.np_random.bit_generator.state}
+    if isinstance(base, DMCEnv):
+        state["task"] = base._dmc.task.random.get_state()
+    return state
+
+
+def set_rng_state(env: gymnasium.Env, state: dict) -> None:
+    """Restore what ``rng_state(env)`` returned."""
+    base = env.unwrapped
+    base.np_random.bit_generator.state = state["np_random"]
+    env.action_space.np_random.bit_generator.state = state["action_space"]
+    if "task" in state:
+        base._dmc.task.random.set_state(state["task"])
+
+
 # ---------------------------------------------------------------------------------- factory
 def _make_base(family: str, env_id: int, seed: int | None) -> gymnasium.Env:
     if family == "walker":

@@ -165,7 +165,8 @@ def test_same_seed_runs_are_identical_and_resume_continues(tmp_path, capsys, mon
     assert first["global_step"] == 640
     for key, value in first["model"].items():
         assert torch.equal(value, second["model"][key]), key
-    # a 680-step run killed at step 680's progress line: its last checkpoint is step 640, its events reach 660
+    # a 680-step run killed at step 680's progress line: its periodic checkpoint waits for the episode end at 700,
+    # so its last one is the one after the burst (step 600); its events reach 660
     args = tiny_args(tmp_path / "c", total_timesteps=680, checkpoint_every=640)
     progress_text = claw.progress_text
 
@@ -182,11 +183,11 @@ def test_same_seed_runs_are_identical_and_resume_continues(tmp_path, capsys, mon
     assert "budget: 680 agent steps: a 600-step random prefill, 5 burst updates" in out
     assert "step 660/680 |" in out and "| SPS " in out and "| elapsed 0:00:" in out and "| ETA 0:00:" in out
     checkpoint = os.path.join(args.run_dir, "checkpoint.pt")
-    assert torch.load(checkpoint, weights_only=False)["global_step"] == 640
-    # --resume alone: the saved arguments, continued from step 640 into the same run directory
+    assert torch.load(checkpoint, weights_only=False)["global_step"] == 600
+    # --resume alone: the saved arguments, continued from step 600 into the same run directory
     claw.main(claw.Args(resume=checkpoint))
     out = capsys.readouterr().out
-    assert "at step 640" in out and "step 660/680" in out and "step 680/680" in out and "prefilled" not in out
+    assert "at step 600" in out and "step 620/680" in out and "step 680/680" in out and "prefilled" not in out
     resumed = torch.load(checkpoint, weights_only=False)
     assert resumed["global_step"] == 680 and resumed["args"]["model_size"] == "I"
     assert resumed["replay"]["size"] == first["replay"]["size"] + 40

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from common.context import collect_episodes
-from common.envs import (FAMILIES, env_param, episode_length, is_metaworld, make_env, num_envs)
+from common.envs import (FAMILIES, env_param, episode_length, is_metaworld, make_env, num_envs, rng_state,
+                         set_rng_state)
 
 OBS_DIM = {"walker": 24, "reach": 39, "push": 39, "go1": 39, "cheetah_walker": 24}
 ACT_DIM = {"walker": 6, "reach": 4, "push": 4, "go1": 12, "cheetah_walker": 6}
@@ -277,3 +278,18 @@ def test_collect_episodes_custom_policy_and_noisy_env():
     np.testing.assert_array_equal(a["episode"], np.repeat([0, 1, 2], 10))
     np.testing.assert_array_equal(a["obs"], b["obs"])
     assert not np.array_equal(a["obs"][0], a["obs"][10])  # later resets draw fresh noise
+
+
+@pytest.mark.parametrize("family", ["walker", "go1", "reach"])
+def test_rng_state_continues_resets_and_action_samples(family):
+    """rng_state/set_rng_state (exact resume): another instance continues the same resets and action samples."""
+    env = make_env(family, 0, seed=3, oracle=True)
+    env.action_space.seed(3)
+    env.reset()
+    state = rng_state(env)
+    expected = [env.reset()[0], env.action_space.sample(), env.reset()[0]]
+    other = make_env(family, 0, seed=99, oracle=True)
+    other.action_space.seed(99)
+    set_rng_state(other, state)
+    for a, b in zip(expected, [other.reset()[0], other.action_space.sample(), other.reset()[0]]):
+        np.testing.assert_array_equal(a, b)

@@ -214,3 +214,76 @@ def test_posthoc_killed_in_its_first_burst_redoes_it_and_goes_on(tmp_path, capsy
     assert "pass 2: prefilled up to step 1050; 5 burst updates" in out and "step 1100/1100" in out
     state = torch.load(checkpoint, weights_only=False)
     assert (state["global_step"], state["pass"], state["burst_left"]) == (1100, 2, 0)
+
+
+def eval_lines(out: str) -> list[str]:
+    return [line for line in out.splitlines() if line.startswith("eval")]
+
+
+def raise_on_call(function, n: int):
+    """`function`, killed (KeyboardInterrupt, as a kill -9 would stop it) on its n-th call."""
+    calls = [0]
+
+    def killed(*a, **k):
+        calls[0] += 1
+        if calls[0] == n:
+            raise KeyboardInterrupt
+        return function(*a, **k)
+
+    return killed
+
+
+def raise_at_step(progress_text, step: int):
+    def killed(s, *rest):
+        if s == step:
+            raise KeyboardInterrupt
+        return progress_text(s, *rest)
+
+    return killed
+
+
+# script, its tiny arguments, and kill points: (patched name, wrapper, the step of the last checkpoint before the kill)
+EXACT = {
+    "claw": (claw, dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100), [
+        ("update", lambda f: raise_on_call(f, 3), 600),  # in the burst: the checkpoint after the prefill
+        ("progress_text", lambda f: raise_at_step(f, 620), 600),  # training, before the first episode ends
+        ("progress_text", lambda f: raise_at_step(f, 760), 700),  # after a periodic checkpoint at an episode end
+        ("online_adaptation", lambda f: raise_on_call(f, 2), 800)]),  # in the final evaluation
+    "dr": (dr, dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100, offline_adapt_steps=(0, 2)), [
+        ("progress_text", lambda f: raise_at_step(f, 760), 700),
+        ("offline_adaptation", lambda f: raise_on_call(f, 1), 800)]),
+    "posthoc": (posthoc, dict(family="cheetah_walker", rank=2, total_timesteps=1100, log_every=25, checkpoint_every=550), [
+        ("collect_episodes", lambda f: raise_on_call(f, 1), 550),  # pass 2 begins: pass 1's end is an episode end
+        ("progress_text", lambda f: raise_at_step(f, 1075), 1050)]),  # in pass 2: the checkpoint after its burst
+}
+
+
+@pytest.mark.parametrize("name", list(EXACT))
+def test_killed_and_resumed_runs_equal_uninterrupted_ones(name, tmp_path, capsys, monkeypatch):
+    """Exact resume on the CPU: wherever a run is killed, --resume alone ends with the same weights and evaluation."""
+    from test_baselines_incontext import TINY
+
+    script, overrides, kills = EXACT[name]
+    base = {k: v for k, v in TINY.items() if not (script is dr and k == "context_pool_episodes")}
+    args = script.Args(**{**base, **overrides, "evaluate_after_training": True, "run_dir": str(tmp_path / "whole")})
+    script.main(args)
+    whole_out = capsys.readouterr().out
+    whole = torch.load(os.path.join(args.run_dir, "checkpoint.pt"), weights_only=False)
+    assert len(eval_lines(whole_out)) >= 2
+    for i, (attr, wrap, saved_step) in enumerate(kills):
+        run_dir = str(tmp_path / f"killed{i}")
+        monkeypatch.setattr(script, attr, wrap(getattr(script, attr)))
+        with pytest.raises(KeyboardInterrupt):
+            script.main(script.Args(**{**vars(args), "run_dir": run_dir}))
+        monkeypatch.undo()
+        checkpoint = os.path.join(run_dir, "checkpoint.pt")
+        assert torch.load(checkpoint, weights_only=False)["global_step"] == saved_step, attr
+        capsys.readouterr()
+        script.main(script.Args(resume=checkpoint))
+        out = capsys.readouterr().out
+        resumed = torch.load(checkpoint, weights_only=False)
+        assert f"at step {saved_step}" in out
+        for part in ("model", "hypernet"):
+            for key, value in whole.get(part, {}).items():
+                assert torch.equal(value, resumed[part][key]), (attr, saved_step, part, key)
+        assert eval_lines(out) == eval_lines(whole_out), (attr, saved_step)
