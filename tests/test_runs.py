@@ -242,11 +242,12 @@ def raise_at_step(progress_text, step: int):
     return killed
 
 
-# script, its tiny arguments, and kill points: (patched name, wrapper, the step of the last checkpoint before the kill)
+# script, its tiny arguments, and kill points, in the order one run meets them: (patched name, wrapper,
+# the step of the last checkpoint before the kill)
 EXACT = {
     "claw": (claw, dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100), [
         ("update", lambda f: raise_on_call(f, 3), 600),  # in the burst: the checkpoint after the prefill
-        ("progress_text", lambda f: raise_at_step(f, 620), 600),  # training, before the first episode ends
+        ("progress_text", lambda f: raise_at_step(f, 620), 600),  # after the burst, before an episode ends
         ("progress_text", lambda f: raise_at_step(f, 760), 700),  # after a periodic checkpoint at an episode end
         ("online_adaptation", lambda f: raise_on_call(f, 2), 800)]),  # in the final evaluation
     "dr": (dr, dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100, offline_adapt_steps=(0, 2)), [
@@ -260,30 +261,31 @@ EXACT = {
 
 @pytest.mark.parametrize("name", list(EXACT))
 def test_killed_and_resumed_runs_equal_uninterrupted_ones(name, tmp_path, capsys, monkeypatch):
-    """Exact resume on the CPU: wherever a run is killed, --resume alone ends with the same weights and evaluation."""
+    """Exact resume on the CPU: a run killed again and again, each time continued by --resume alone, ends with
+    the weights and evaluation of an uninterrupted run with the same seed."""
     from test_baselines_incontext import TINY
 
     script, overrides, kills = EXACT[name]
     base = {k: v for k, v in TINY.items() if not (script is dr and k == "context_pool_episodes")}
-    args = script.Args(**{**base, **overrides, "evaluate_after_training": True, "run_dir": str(tmp_path / "whole")})
+    cheap = dict(num_samples=16, num_elites=4, num_pi_trajs=2, iterations=1, evaluate_after_training=True)
+    args = script.Args(**{**base, **overrides, **cheap, "run_dir": str(tmp_path / "whole")})
     script.main(args)
     whole_out = capsys.readouterr().out
     whole = torch.load(os.path.join(args.run_dir, "checkpoint.pt"), weights_only=False)
     assert len(eval_lines(whole_out)) >= 2
+    checkpoint = str(tmp_path / "killed" / "checkpoint.pt")
     for i, (attr, wrap, saved_step) in enumerate(kills):
-        run_dir = str(tmp_path / f"killed{i}")
         monkeypatch.setattr(script, attr, wrap(getattr(script, attr)))
         with pytest.raises(KeyboardInterrupt):
-            script.main(script.Args(**{**vars(args), "run_dir": run_dir}))
+            script.main(script.Args(resume=checkpoint) if i else script.Args(**{**vars(args), "run_dir": os.path.dirname(checkpoint)}))
         monkeypatch.undo()
-        checkpoint = os.path.join(run_dir, "checkpoint.pt")
         assert torch.load(checkpoint, weights_only=False)["global_step"] == saved_step, attr
-        capsys.readouterr()
-        script.main(script.Args(resume=checkpoint))
-        out = capsys.readouterr().out
-        resumed = torch.load(checkpoint, weights_only=False)
-        assert f"at step {saved_step}" in out
-        for part in ("model", "hypernet"):
-            for key, value in whole.get(part, {}).items():
-                assert torch.equal(value, resumed[part][key]), (attr, saved_step, part, key)
-        assert eval_lines(out) == eval_lines(whole_out), (attr, saved_step)
+    capsys.readouterr()
+    script.main(script.Args(resume=checkpoint))
+    out = capsys.readouterr().out
+    assert f"at step {kills[-1][2]}" in out
+    resumed = torch.load(checkpoint, weights_only=False)
+    for part in ("model", "hypernet"):
+        for key, value in whole.get(part, {}).items():
+            assert torch.equal(value, resumed[part][key]), (part, key)
+    assert eval_lines(out) == eval_lines(whole_out)
