@@ -138,8 +138,9 @@ class Args:
     log_every: int = 1000
     """agent steps between progress lines"""
     checkpoint_every: int = 50_000
+    """checkpoint at the first episode end after every this many agent steps (and after the prefill and burst)"""
     checkpoint_minutes: float = 10.0
-    """also checkpoint after this many minutes of wall-clock since the last one (and after the prefill and burst)"""
+    """also checkpoint at the first episode end after this many minutes of wall-clock since the last one"""
     checkpoint: Optional[str] = None
     """checkpoint to evaluate with --eval-only"""
     eval_only: bool = False
