@@ -266,7 +266,7 @@ def test_killed_and_resumed_runs_equal_uninterrupted_ones(name, tmp_path, capsys
     from test_baselines_incontext import TINY
 
     script, overrides, kills = EXACT[name]
-    base = {k: v for k, v in TINY.items() if not (script is dr and k == "context_pool_episodes")}
+    base = {k: v for k, v in TINY.items() if k in script.Args.__dataclass_fields__}  # dr: no context pool
     cheap = dict(num_samples=16, num_elites=4, num_pi_trajs=2, iterations=1, evaluate_after_training=True)
     args = script.Args(**{**base, **overrides, **cheap, "run_dir": str(tmp_path / "whole")})
     script.main(args)
