@@ -161,19 +161,24 @@ def test_launcher_arguments(tmp_path):
         experiments.main(["exp1", "--scale", "smoke", "--dry-run", "--root", str(tmp_path / "file")])
 
 
+def kill_at_update(monkeypatch, script, call: int):
+    """Make script.update raise KeyboardInterrupt on its call-th call: a kill in the middle of the burst."""
+    update, calls = script.update, [0]
+
+    def killed(*a, **k):
+        calls[0] += 1
+        if calls[0] == call:
+            raise KeyboardInterrupt
+        return update(*a, **k)
+
+    monkeypatch.setattr(script, "update", killed)
+
+
 def test_a_run_killed_in_its_burst_resumes_from_its_prefill(tmp_path, capsys, monkeypatch):
     from test_claw import tiny_args
 
     args = tiny_args(tmp_path, total_timesteps=620)
-    update, calls = claw.update, [0]
-
-    def killed_in_burst(*a, **k):
-        calls[0] += 1
-        if calls[0] == 3:
-            raise KeyboardInterrupt
-        return update(*a, **k)
-
-    monkeypatch.setattr(claw, "update", killed_in_burst)
+    kill_at_update(monkeypatch, claw, 3)
     with pytest.raises(KeyboardInterrupt):
         claw.main(args)
     monkeypatch.undo()
@@ -192,15 +197,7 @@ def test_posthoc_killed_in_its_first_burst_redoes_it_and_goes_on(tmp_path, capsy
     from test_baselines_incontext import tiny_args
 
     args = tiny_args(posthoc, tmp_path)
-    update, calls = posthoc.update, [0]
-
-    def killed_in_burst(*a, **k):
-        calls[0] += 1
-        if calls[0] == 3:
-            raise KeyboardInterrupt
-        return update(*a, **k)
-
-    monkeypatch.setattr(posthoc, "update", killed_in_burst)
+    kill_at_update(monkeypatch, posthoc, 3)
     with pytest.raises(KeyboardInterrupt):
         posthoc.main(args)
     monkeypatch.undo()
