@@ -28,11 +28,10 @@ import torch.nn as nn
 import torch.nn.functional as F
 import tyro
 from torch.utils.tensorboard import SummaryWriter
-from tqdm import tqdm
 
 from common.context import collect_episodes
 from common.envs import FAMILIES, episode_length, is_metaworld, make_env, num_envs, render_problem, rng_state, set_rng_state
-from common.evaluation import mean_ci, offline_adaptation, online_adaptation
+from common.evaluation import mean_ci, offline_adaptation, online_adaptation, progress_bar
 
 # Paper Table "Per-family pretraining setup" (cheetah_walker: Exp 3-5, 250k per task).
 DEFAULT_TOTAL_TIMESTEPS = {"walker": 600_000, "reach": 50_000, "push": 300_000, "go1": 1_000_000, "cheetah_walker": 500_000}
@@ -816,13 +815,6 @@ def progress_text(step: int, total: int, start_step: int, start_time: float, sta
         parts.append(f"success {sum(s for _, s in recent) / len(recent):.2f}" if recent else "success -")
     eta = hms((total - step) / rate) if rate > 0 else "-"
     return " | ".join(parts + [f"SPS {int(rate)}", f"elapsed {hms(now - started)}", f"ETA {eta}"])
-
-
-def progress_bar(iterable=None, total: int | None = None, desc: str = ""):
-    """tqdm on stderr that leaves no line behind; silent when stderr is not a terminal (logs, sweeps)
-    unless CLAW_PROGRESS=1."""
-    disable = None if os.environ.get("CLAW_PROGRESS") != "1" else False
-    return tqdm(iterable, total=total, desc=desc, leave=False, dynamic_ncols=True, disable=disable, mininterval=1.0)
 
 
 def random_prefill(envs: dict, replay, total: int) -> int:

@@ -21,7 +21,7 @@ ActFn = Callable[[np.ndarray, bool], np.ndarray]
 
 def progress_bar(iterable=None, total: int | None = None, desc: str = ""):
     """tqdm on stderr that leaves no line behind; silent when stderr is not a terminal (logs, sweeps)
-    unless CLAW_PROGRESS=1. The same as every script's own progress_bar."""
+    unless CLAW_PROGRESS=1. The scripts' prefill and burst bars use it too."""
     disable = None if os.environ.get("CLAW_PROGRESS") != "1" else False
     return tqdm(iterable, total=total, desc=desc, leave=False, dynamic_ncols=True, disable=disable, mininterval=1.0)
 
