@@ -22,6 +22,10 @@ Scales:
   cpu    fits in about two hours on a 2-core CPU with --workers 2: Reach only for Exp 1/2 and
          Cheetah/Walker for Exp 3-5, sizes G-I, 5,000 pretraining steps, a 128-sample
          planner, short evaluations, 3 seeds. Same hyperparameters for every method.
+  learn  budgets where single-task TD-MPC2 learns (issue 14), size F, 3 seeds, compiled: `budget` (ST on each
+         Cheetah/Walker embodiment, 2 seeds, 40,000 agent steps, training curves only) chooses the per-embodiment
+         budget of Exp 3-5 (not set yet: those refuse to run at this scale until it is); Exp 1/2 on Reach (the
+         paper's 50,000 steps, 2,000 online test-time steps per environment) and Walker (50,000 steps, 1,000).
   smoke  seconds-long runs used by the tests.
 """
 from __future__ import annotations
@@ -69,6 +73,16 @@ SCALES = {
         "exp12": ["--online-eval-steps", "600", "--offline-adapt-steps", "0", "1", "10", "100"],
         "exp345": ["--online-eval-steps", "1000"],
     },
+    "learn": {
+        "seeds": (1, 2, 3),
+        "exp12_families": ("reach", "walker"),
+        "exp12_size": "F", "exp12_rank": 16,
+        "common": ["--compile", "--log-every", "1000", "--checkpoint-every", "5000"],
+        "exp12": ["--offline-adapt-steps", "0", "1", "10", "100", "1000"],
+        "exp12_family": {"reach": ["--total-timesteps", "50000", "--online-eval-steps", "2000"],
+                         "walker": ["--total-timesteps", "50000", "--online-eval-steps", "1000"]},
+        "budget": ["--total-timesteps", "40000", "--no-evaluate-after-training"], "budget_seeds": (1, 2),
+    },
     "smoke": {
         "seeds": (1, 2),
         "exp12_families": ("reach",),
@@ -93,16 +107,19 @@ class Run:
     seed: int
     extra: list = field(default_factory=list)
     experiments: list = field(default_factory=list)
+    train_env: int | None = None  # ST's --train-env-id, where a recipe names it
 
     @property
     def name(self) -> str:
-        return f"{self.method}__{self.family}__{self.size}__r{self.rank}__s{self.seed}"
+        env = "" if self.train_env is None else f"__e{self.train_env}"
+        return f"{self.method}__{self.family}{env}__{self.size}__r{self.rank}__s{self.seed}"
 
     def command(self, run_dir: str, cuda: bool = False) -> list[str]:
         family = [] if self.method == "posthoc" else ["--family", self.family]
         rank = [] if self.method in ("film", "concat") else ["--rank", str(self.rank)]  # no LoRA, no rank
         device = [] if cuda else ["--no-cuda"]
-        return [sys.executable, os.path.join(REPO, SCRIPTS[self.method]), *family, "--model-size", self.size,
+        env = [] if self.train_env is None else ["--train-env-id", str(self.train_env)]
+        return [sys.executable, os.path.join(REPO, SCRIPTS[self.method]), *family, *env, "--model-size", self.size,
                 *rank, "--seed", str(self.seed), *device, "--run-dir", run_dir, *self.extra]
 
 
@@ -114,7 +131,16 @@ def recipe(experiment: str, scale: str) -> list[Run]:
             for method in ("claw", "dr", "st", "oracle"):
                 for seed in s["seeds"]:
                     extra = s.get("exp12", []) if method != "claw" else _without_sweep(s.get("exp12", []))
+                    extra = extra + s.get("exp12_family", {}).get(family, [])
                     runs.append(Run(method, family, s["exp12_size"], s["exp12_rank"], seed, s["common"] + extra))
+    elif experiment == "budget":  # single-task learning curves on each Cheetah/Walker embodiment
+        if "budget" not in s:
+            raise SystemExit(f"error: experiment budget is defined at scale learn only, not {scale}")
+        for env_id in (0, 1):
+            for seed in s["budget_seeds"]:
+                runs.append(Run("st", "cheetah_walker", "F", SIZE_RANKS["F"], seed, s["common"] + s["budget"], train_env=env_id))
+    elif "exp345" not in s:
+        raise SystemExit(f"error: {experiment} at scale {scale} waits for its per-embodiment budget (experiment budget)")
     elif experiment == "exp3":
         for size in s["exp3_sizes"]:
             for method in ("claw", "film", "concat"):
@@ -132,7 +158,7 @@ def recipe(experiment: str, scale: str) -> list[Run]:
             for method in ("claw", "posthoc"):
                 runs.append(Run(method, "cheetah_walker", size, SIZE_RANKS[size], seed, s["common"] + s["exp345"]))
     else:
-        raise SystemExit(f"error: unknown experiment {experiment!r}; valid: exp1 exp2 exp3 exp4 exp5")
+        raise SystemExit(f"error: unknown experiment {experiment!r}; valid: budget exp1 exp2 exp3 exp4 exp5")
     for run in runs:
         run.experiments.append(experiment)
     return runs
@@ -437,7 +463,7 @@ def parse_minutes(text: str) -> int:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("experiments", nargs="+", choices=["exp1", "exp2", "exp3", "exp4", "exp5"])
+    parser.add_argument("experiments", nargs="+", choices=["budget", "exp1", "exp2", "exp3", "exp4", "exp5"])
     parser.add_argument("--scale", choices=list(SCALES), default="paper")
     parser.add_argument("--launcher", choices=["local", "slurm"], default="local",
                         help="local: runs on this machine; slurm: submits a job array and returns")
