@@ -63,10 +63,10 @@ class Args:
     """if toggled, cuda will be used when available"""
     threads: Optional[int] = None
     """torch CPU threads (default: torch's choice); use 1 per run when several runs share the cores"""
-    compile: Optional[bool] = None
+    compile: Literal["auto", "on", "off"] = "auto"
     """torch.compile the update and the planner (inductor; CUDA graphs for the planner on a GPU): same losses and updates
-    as eager within float tolerance, faster steps after a one-off compile of ~2 min; default: on for budgets of at least
-    10,000 agent steps (on this 2-core CPU at size F it pays for itself after ~8,000; benchmarks/speed.py)"""
+    as eager within float tolerance, faster steps after a one-off compile of ~2 min; auto: on for budgets of at least
+    10,000 agent steps (on a 2-core CPU at size F it pays for itself after ~8,000; README "Speed")"""
     total_timesteps: Optional[int] = None
     """pretraining agent steps (planner calls); default: the paper's per-family budget"""
     model_size: Literal["A", "B", "D", "E", "F", "G", "H", "I"] = "A"
@@ -910,9 +910,9 @@ def main(args: Args):
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-    if args.compile is None:  # measured break-even: README "Speed"
-        args.compile = total_timesteps >= 10_000
-    if args.compile:  # rebinds the module's hot functions: every call below, evaluation included, takes the compiled ones
+    if args.compile == "auto":  # measured break-even: README "Speed"
+        args.compile = "on" if total_timesteps >= 10_000 else "off"
+    if args.compile == "on":  # rebinds the module's hot functions: every call below, evaluation included, takes the compiled ones
         global update, plan
         update, plan = compiled(update, device, cuda_graphs=False), compiled(plan, device)
 

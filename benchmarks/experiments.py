@@ -77,7 +77,7 @@ SCALES = {
         "seeds": (1, 2, 3),
         "exp12_families": ("reach", "walker"),
         "exp12_size": "F", "exp12_rank": 16,
-        "common": ["--compile", "--log-every", "1000", "--checkpoint-every", "5000"],
+        "common": ["--compile", "on", "--log-every", "1000", "--checkpoint-every", "5000"],
         "exp12": ["--offline-adapt-steps", "0", "1", "10", "100", "1000"],
         "exp12_family": {"reach": ["--total-timesteps", "50000", "--online-eval-steps", "2000"],
                          "walker": ["--total-timesteps", "50000", "--online-eval-steps", "1000"]},
