@@ -10,6 +10,9 @@ Metrics per run (keys written by every method script):
                                    (CLAW, FiLM, Concat: x = 0, their single adaptation pass)
   online_return_env{j}             Exp 1 return in environment j alone
 Curves (Exp 1): family-averaged return and success per test-time step, averaged across seeds.
+Training curves (experiment budget: one embodiment per run, no evaluation protocol): the mean
+training-episode return per window of agent steps, per seed, then mean and 95% CI across seeds,
+beside the random policy's return (training_curves.csv / training_curves.md).
 Runs that failed, are still running (their run.lock is held), died, or lack evaluation events are listed,
 never dropped silently; so are runs whose events repeat a step (a resume logged without purge_step), of
 which the last value counts.
@@ -20,6 +23,7 @@ import argparse
 import csv
 import glob
 import json
+import math
 import os
 import sys
 from collections import defaultdict
@@ -86,6 +90,8 @@ def problem(run: dict) -> str | None:
         return "status running, but no live process holds its run.lock: it died; rerun the launcher to resume it"
     if run.get("status") != "done":
         return f"status {run.get('status', 'unknown')}" + (f" (returncode {run['returncode']})" if "returncode" in run else "")
+    if "budget" in run.get("experiments", []):
+        return "a training curve (experiment budget), in training_curves.csv"
     if not run_metrics(run):
         return "finished without evaluation events"
     return None
@@ -122,6 +128,62 @@ def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str,
     return rows, curves, problems
 
 
+def train_env_of(run: dict) -> int | None:
+    """ST's --train-env-id from the recorded command (the budget recipe trains one embodiment per run)."""
+    words = run.get("command", "").split()
+    return int(words[words.index("--train-env-id") + 1]) if "--train-env-id" in words else None
+
+
+def random_policy_return(family: str, env_id: int, episodes: int = 10, seed: int = 0) -> float:
+    """Mean return of uniformly random actions (the reference a learning curve must leave behind)."""
+    from common.envs import make_env
+
+    env, returns = make_env(family, env_id, seed=seed), []
+    env.action_space.seed(seed)
+    for episode in range(episodes):
+        env.reset(seed=seed + episode)
+        total, done = 0.0, False
+        while not done:
+            _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+            total, done = total + float(reward), terminated or truncated
+        returns.append(total)
+    return sum(returns) / len(returns)
+
+
+def training_curves(runs: list[dict], window: int = 2500) -> list[dict]:
+    """Learning curves of the budget runs, finished or not: the mean training-episode return (charts/episodic_return,
+    the planner with its exploration noise) per window of `window` agent steps, per seed, then across seeds."""
+    groups = defaultdict(list)
+    for run in runs:
+        if "budget" in run.get("experiments", []):
+            groups[(run["method"], run["family"], train_env_of(run), run["size"])].append(run)
+    rows = []
+    for (method, family, env_id, size), members in sorted(groups.items(), key=lambda kv: str(kv[0])):
+        by_window = defaultdict(list)
+        for run in members:
+            per_window = defaultdict(list)
+            for step, value in run["scalars"].get("charts/episodic_return", []):
+                per_window[math.ceil(step / window) * window].append(value)
+            for end, values in per_window.items():
+                by_window[end].append(sum(values) / len(values))
+        random_return = random_policy_return(family, env_id)
+        for end, values in sorted(by_window.items()):
+            mean, half = mean_ci(values)
+            rows.append({"method": method, "family": family, "train_env": env_id, "size": size, "step": end, "n": len(values),
+                         "mean": mean, "ci95": half, "random_policy": random_return, "seeds": ",".join(str(r["seed"]) for r in members)})
+    return rows
+
+
+def training_markdown(rows: list[dict]) -> str:
+    lines = ["| method | family | env | size | agent steps up to | seeds | mean training-episode return | 95% CI | x random policy |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        ratio = r["mean"] / r["random_policy"] if r["random_policy"] > 0 else float("nan")
+        lines.append(f"| {r['method']} | {r['family']} | {r['train_env']} | {r['size']} | {r['step']} | {r['n']} | {r['mean']:.1f} | "
+                     f"± {r['ci95']:.1f} | {ratio:.1f} (random {r['random_policy']:.1f}) |")
+    return "\n".join(lines) + "\n"
+
+
 def write_csv(path: str, rows: list[dict]):
     if not rows:
         return
@@ -155,6 +217,12 @@ def main(argv=None):
     rows, curves, problems = summarize(runs)
     write_csv(os.path.join(cli.root, "summary.csv"), rows)
     write_csv(os.path.join(cli.root, "curves.csv"), curves)
+    training = training_curves(runs)
+    if training:
+        write_csv(os.path.join(cli.root, "training_curves.csv"), training)
+        with open(os.path.join(cli.root, "training_curves.md"), "w") as f:
+            f.write(training_markdown(training))
+        print(training_markdown(training))
     duplicated = [(run["dir"], run["duplicated"]) for run in runs if run["duplicated"]]
     for run_dir, tags in duplicated:
         print(f"warning: {run_dir} has duplicated steps in {len(tags)} tag(s), e.g. {tags[0]}; kept the last value per step")

@@ -7,6 +7,7 @@ exp2.png  return (and success) vs offline gradient steps (symlog x); CLAW's pass
 exp3.png  Cheetah/Walker return vs base parameter count (log x) for CLAW, FiLM, Concat; ratio to CLAW
 exp4.png  return vs LoRA rank, and vs adapter size as % of the world model, FiLM/Concat for reference
 exp5.png  Cheetah return: CLAW (joint) vs post-hoc hypernet
+budget.png  single-embodiment training curves (experiment budget) beside the random policy's return
 A figure whose runs are missing is skipped with a message. Bands and error bars are 95% t-CIs.
 """
 from __future__ import annotations
@@ -24,7 +25,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import matplotlib.ticker  # noqa: E402
 
-from benchmarks.aggregate import load_runs, summarize  # noqa: E402
+from benchmarks.aggregate import load_runs, summarize, training_curves  # noqa: E402
 from benchmarks.experiments import SIZE_RANKS  # noqa: E402
 
 COLORS = {"claw": "tab:red", "dr": "tab:blue", "st": "tab:green", "oracle": "black", "film": "tab:purple",
@@ -207,6 +208,25 @@ def figure_exp5(rows, curves, out) -> str | None:
     return None
 
 
+def figure_budget(training, out) -> str | None:
+    """One panel per trained embodiment: mean training-episode return per step window, 95% CI band, random policy."""
+    embodiments = sorted({(r["family"], r["train_env"]) for r in training}, key=str)
+    if not embodiments:
+        return "budget: no budget runs"
+    fig, axes = plt.subplots(1, len(embodiments), figsize=(4.5 * len(embodiments), 3.5), squeeze=False)
+    for ax, (family, env_id) in zip(axes[0], embodiments):
+        points = [r for r in training if (r["family"], r["train_env"]) == (family, env_id)]
+        x, y, ci = [p["step"] for p in points], [p["mean"] for p in points], [_ci(p["ci95"]) for p in points]
+        ax.plot(x, y, color=COLORS[points[0]["method"]], label=f"{LABELS[points[0]['method']]} (seeds {points[0]['seeds']})")
+        ax.fill_between(x, [a - b for a, b in zip(y, ci)], [a + b for a, b in zip(y, ci)], color=COLORS[points[0]["method"]], alpha=0.15)
+        ax.axhline(points[0]["random_policy"], color="gray", linestyle="--", label="random policy")
+        ax.set(title=f"{family} env {env_id}, size {points[0]['size']}", xlabel="agent steps", ylabel="training-episode return")
+        ax.legend(fontsize="small")
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "budget.png"), dpi=120)
+    return None
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("root", help="sweep directory, e.g. runs/sweeps/cpu")
@@ -214,12 +234,15 @@ def main(argv=None):
     cli = parser.parse_args(argv)
     out = cli.out or cli.root
     os.makedirs(out, exist_ok=True)
-    rows, curves, problems = summarize(load_runs(cli.root))
+    runs = load_runs(cli.root)
+    rows, curves, problems = summarize(runs)
     for dir_, why in problems:
         print(f"not aggregated: {os.path.basename(dir_)}: {why}")
     for figure in (figure_exp1, figure_exp2, figure_exp3, figure_exp4, figure_exp5):
         skipped = figure(rows, curves, out)
         print(f"skipped {skipped}" if skipped else f"wrote {os.path.join(out, figure.__name__[7:] + '.png')}")
+    skipped = figure_budget(training_curves(runs), out)
+    print(f"skipped {skipped}" if skipped else f"wrote {os.path.join(out, 'budget.png')}")
 
 
 if __name__ == "__main__":

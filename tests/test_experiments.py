@@ -228,3 +228,33 @@ def test_encoder_probe_learns_a_goal_that_shifts_the_reward():
     hits, ratio = context_identifiability.train_encoder_probe(draw, [0, 1], test, [0] * 3 + [1] * 3, steps=60,
                                                               statistics=torch.cat(train))
     assert hits == 6 and ratio > 1.5
+
+
+def test_learn_recipes_and_budget_training_curves(monkeypatch):
+    """The budget recipe trains ST on each Cheetah/Walker embodiment (distinct run names); its runs are aggregated as
+    training curves per step window and embodiment, seeds averaged, and Exp 3-5 wait for the chosen budget."""
+    budget = experiments.recipe("budget", "learn")
+    assert sorted((r.train_env, r.seed) for r in budget) == [(0, 1), (0, 2), (1, 1), (1, 2)]
+    assert len({r.name for r in budget}) == 4 and all("--train-env-id" in r.command("d") for r in budget)
+    exp12 = experiments.plan_runs(["exp1", "exp2"], "learn")
+    assert {(r.family, r.size) for r in exp12} == {("reach", "F"), ("walker", "F")} and len(exp12) == 2 * 4 * 3
+    with pytest.raises(SystemExit, match="waits for its per-embodiment budget"):
+        experiments.recipe("exp4", "learn")
+    monkeypatch.setattr(aggregate, "random_policy_return", lambda family, env_id: 10.0 * (env_id + 1))
+
+    def run(env_id, seed, returns):  # (step, training-episode return) pairs, as TensorBoard holds them
+        return {"method": "st", "family": "cheetah_walker", "size": "F", "seed": seed, "experiments": ["budget"],
+                "command": f"python st_tdmpc2.py --train-env-id {env_id}", "scalars": {"charts/episodic_return": returns}}
+
+    runs = [run(0, 1, [(3000, 10.0), (5000, 30.0), (5500, 50.0)]), run(0, 2, [(4000, 20.0), (6000, 70.0)]),
+            run(1, 1, [(2600, 5.0)]), {"method": "claw", "experiments": ["exp1"], "scalars": {}}]
+    rows = aggregate.training_curves(runs, window=2500)
+    assert [(r["train_env"], r["step"], r["n"], r["mean"]) for r in rows] == [(0, 5000, 2, 20.0), (0, 7500, 2, 60.0), (1, 5000, 1, 5.0)]
+    assert [r["random_policy"] for r in rows] == [10.0, 10.0, 20.0]
+    assert "| 7500 | 2 | 60.0 |" in aggregate.training_markdown(rows)
+
+
+def test_random_policy_return_is_a_real_rollout():
+    first, again = aggregate.random_policy_return("reach", 0, episodes=2), aggregate.random_policy_return("reach", 0, episodes=2)
+    assert first == again and first != 0.0
+    assert aggregate.random_policy_return("reach", 0, episodes=2, seed=1) != first
