@@ -1,0 +1,122 @@
+"""benchmarks/context_controls.py: the own arm is CLAW's evaluation, the swapped arm feeds another environment's
+context, arms are deterministic, and bad checkpoints are one-line errors."""
+import os
+import random
+
+import numpy as np
+import pytest
+import torch
+
+import claw_tdmpc2 as claw
+from benchmarks import context_controls
+from common.context import collect_episodes
+from common.envs import make_env
+from common.evaluation import offline_adaptation
+
+N_ENVS = 6  # reach
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("claw") / "run"
+    claw.main(claw.Args(family="reach", model_size="I", rank=2, total_timesteps=640, seed_steps=100, burst_updates=5,
+                        batch_size=16, num_samples=32, num_elites=8, num_pi_trajs=4, iterations=1,
+                        context_pool_episodes=2, context_episodes=1, log_every=100, checkpoint_every=10_000,
+                        cuda=False, compile="off", run_dir=str(run_dir), evaluate_after_training=False))
+    return str(run_dir / "checkpoint.pt")
+
+
+def own_context(args, env_id, episodes):
+    """Computed here, not by the tool: evaluate()'s environment and context seeds."""
+    env = make_env("reach", env_id, seed=args.seed + 10_000 + env_id)
+    return claw.context_tensor(collect_episodes(env, episodes, seed=args.seed + 20_000 + env_id), "cpu")
+
+
+def by_hand_env0(checkpoint, args):
+    """Environment 0's offline return (1 episode, 1-episode context) recomputed with claw's pieces, from the random
+    state that --eval-only starts evaluate() with."""
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    model = claw.WorldModel(39, 4, args.model_size, args)
+    layout, n_wm, n_pi = claw.lora_layout(model, args.rank)
+    hypernet = claw.Hypernet(2 * 39 + 4 + 1, claw.lora_template(layout, n_wm + n_pi), args)
+    claw.load_checkpoint(checkpoint, model, hypernet)
+    model.eval()
+    env = make_env("reach", 0, seed=args.seed + 10_000)
+    context = collect_episodes(env, 1, seed=args.seed + 20_000)
+    with torch.no_grad():
+        weights = claw.adapted_weights(model, hypernet(claw.context_tensor(context, "cpu")), layout)
+    discount, state = claw.default_discount(args, 100), {"mean": None}
+
+    def act(obs, first_step):
+        action, state["mean"] = claw.plan(model, weights, torch.as_tensor(obs, dtype=torch.float32), None if first_step else state["mean"],
+                                          discount, args, explore=False)
+        return action.numpy()
+
+    records = offline_adaptation(env, context, lambda c: None, act, 1, seed=args.seed + 40_000)
+    return records[0]["return"]
+
+
+def test_own_arm_is_claws_evaluation_and_swapped_arm_feeds_the_other_context(checkpoint, monkeypatch):
+    inputs, forward = [], claw.Hypernet.forward
+
+    def spy(self, transitions):
+        inputs.append(transitions.clone())
+        return forward(self, transitions)
+
+    monkeypatch.setattr(claw.Hypernet, "forward", spy)
+    result = context_controls.controls(checkpoint, swap_offset=1, context_episodes=(1, 2), eval_episodes=1,
+                                       online_eval_steps=0, log=lambda line: None)
+    monkeypatch.setattr(claw.Hypernet, "forward", forward)
+    assert result["context_episodes"] == 1 and set(result["size"]) == {1, 2}
+    own, swapped = result["swap"]["own"]["offline"], result["swap"]["swapped"]["offline"]
+    for column in (own, swapped, result["size"][1], result["size"][2]):
+        assert sorted(column) == list(range(N_ENVS)) and all(np.isfinite(v) for v in column.values())
+    # hypernet inputs, in order: own arm, swapped arm (env j gets env j+1's context), the 2-episode own arm;
+    # the 1-episode size arm is the own arm (same key: not run again)
+    args = claw.Args(**{k: v for k, v in torch.load(checkpoint, weights_only=False)["args"].items() if k in claw.Args.__dataclass_fields__})
+    expected = ([own_context(args, j, 1) for j in range(N_ENVS)] + [own_context(args, (j + 1) % N_ENVS, 1) for j in range(N_ENVS)]
+                + [own_context(args, j, 2) for j in range(N_ENVS)])
+    assert len(inputs) == len(expected)
+    for got, want in zip(inputs, expected):
+        assert torch.equal(got, want)
+    assert result["size"][1] == own
+    assert own != swapped and result["size"][2] != own  # other adapters: other plans, other returns
+    assert own[0] == by_hand_env0(checkpoint, args)
+
+
+def test_two_runs_print_identical_tables(checkpoint, tmp_path, capsys):
+    argv = [checkpoint, "--context-episodes", "1", "--eval-episodes", "1", "--swap-offset", "2"]
+    first = context_controls.main([*argv, "--out", str(tmp_path / "a.md")])
+    second = context_controls.main([*argv, "--out", str(tmp_path / "b.md")])
+    assert first == second
+    text = (tmp_path / "a.md").read_text()
+    assert text == (tmp_path / "b.md").read_text() and capsys.readouterr().out.count(text) == 2
+    assert text.count("| mean ± 95% CI |") == 2 and "context of env (j+2) mod 6" in text and "Exp 1 online" not in text
+
+
+def test_online_protocol_own_vs_swapped(checkpoint):
+    result = context_controls.controls(checkpoint, swap_offset=3, context_episodes=(1,), eval_episodes=1, online_eval_steps=100,
+                                       log=lambda line: None)
+    own, swapped = result["swap"]["own"]["online"], result["swap"]["swapped"]["online"]
+    assert sorted(own) == sorted(swapped) == list(range(N_ENVS))
+    assert all(np.isfinite(v) for v in [*own.values(), *swapped.values()])  # one finished 100-step episode each
+    assert own != swapped
+    # online steps run before the offline episodes and draw planner noise: the offline arm differs from the online-free one
+    assert result["swap"]["own"]["offline"] != result["size"][1]
+    assert "Exp 1 online protocol (100 steps" in context_controls.report(checkpoint, result)
+    # an arm after others starts from the same random state as the first: equal to the recomputation
+    args = claw.Args(**{k: v for k, v in torch.load(checkpoint, weights_only=False)["args"].items() if k in claw.Args.__dataclass_fields__})
+    assert result["size"][1][0] == by_hand_env0(checkpoint, args)
+
+
+def test_one_line_errors(checkpoint, tmp_path):
+    with pytest.raises(SystemExit, match="cannot read checkpoint"):
+        context_controls.main([str(tmp_path / "missing.pt")])
+    foreign = tmp_path / "dr.pt"
+    torch.save({"args": {"family": "reach"}, "model": {}, "method": "dr_tdmpc2.py"}, foreign)
+    with pytest.raises(SystemExit, match="is a dr_tdmpc2.py checkpoint, expected one written by claw_tdmpc2.py"):
+        context_controls.main([str(foreign)])
+    with pytest.raises(SystemExit, match="--swap-offset 6 is a multiple of the 6 environments"):
+        context_controls.main([checkpoint, "--swap-offset", "6"])
