@@ -25,7 +25,9 @@ Scales:
   learn  budgets where single-task TD-MPC2 learns (issue 14), size F, 3 seeds, compiled: `budget` (ST on each
          Cheetah/Walker embodiment, 2 seeds, 40,000 agent steps, training curves only) chooses the per-embodiment
          budget of Exp 3-5 (not set yet: those refuse to run at this scale until it is); Exp 1/2 on Reach (the
-         paper's 50,000 steps, 2,000 online test-time steps per environment) and Walker (50,000 steps, 1,000).
+         paper's 50,000 steps, 2,000 online test-time steps per environment, 10 offline episodes per
+         environment and sweep point) and Walker (50,000 steps, 1,000 online steps, 2 offline episodes:
+         20 environments x 5 sweep points x 500-step episodes, ~100k planner calls per run).
   smoke  seconds-long runs used by the tests.
 """
 from __future__ import annotations
@@ -80,7 +82,7 @@ SCALES = {
         "common": ["--compile", "on", "--log-every", "1000", "--checkpoint-every", "5000"],
         "exp12": ["--offline-adapt-steps", "0", "1", "10", "100", "1000"],
         "exp12_family": {"reach": ["--total-timesteps", "50000", "--online-eval-steps", "2000"],
-                         "walker": ["--total-timesteps", "50000", "--online-eval-steps", "1000"]},
+                         "walker": ["--total-timesteps", "50000", "--online-eval-steps", "1000", "--eval-episodes", "2"]},
         "budget": ["--total-timesteps", "40000", "--no-evaluate-after-training"], "budget_seeds": (1, 2),
     },
     "smoke": {
