@@ -23,8 +23,11 @@ Scales:
          Cheetah/Walker for Exp 3-5, sizes G-I, 5,000 pretraining steps, a 128-sample
          planner, short evaluations, 3 seeds. Same hyperparameters for every method.
   learn  budgets where single-task TD-MPC2 learns (issue 14), size F, 3 seeds, compiled: `budget` (ST on each
-         Cheetah/Walker embodiment, 2 seeds, 40,000 agent steps, training curves only) chooses the per-embodiment
-         budget of Exp 3-5 (not set yet: those refuse to run at this scale until it is); Exp 1/2 on Reach (the
+         Cheetah/Walker embodiment, 2 seeds, 40,000 agent steps, training curves only) chose the per-embodiment
+         budget of Exp 3-5: 20,000 agent steps (single-task returns 15-30x the random policy's there; RESULTS.md),
+         so Exp 4 (CLAW ranks 1, 4, 8, 16, FiLM, Concat) and Exp 5 (post-hoc vs CLAW rank 8) pretrain 40,000 steps
+         on Cheetah/Walker (post-hoc: 20,000 walker + 20,000 cheetah), 5,000 online test-time steps per
+         environment as in the paper; Exp 3 at this scale is the size-F slice of Exp 4. Exp 1/2 on Reach (the
          paper's 50,000 steps, 2,000 online test-time steps per environment, 10 offline episodes per
          environment and sweep point) and Walker (50,000 steps, 1,000 online steps, 2 offline episodes:
          20 environments x 5 sweep points x 500-step episodes, ~100k planner calls per run).
@@ -84,6 +87,8 @@ SCALES = {
         "exp12_family": {"reach": ["--total-timesteps", "50000", "--online-eval-steps", "2000"],
                          "walker": ["--total-timesteps", "50000", "--online-eval-steps", "1000", "--eval-episodes", "2"]},
         "budget": ["--total-timesteps", "40000", "--no-evaluate-after-training"], "budget_seeds": (1, 2),
+        "exp3_sizes": ("F",), "exp4_size": "F", "exp4_ranks": (1, 4, 8, 16),
+        "exp345": ["--total-timesteps", "40000", "--online-eval-steps", "5000"],  # 2 x the 20,000-step budget
     },
     "smoke": {
         "seeds": (1, 2),

@@ -238,6 +238,12 @@ def test_learn_recipes_and_budget_training_curves(monkeypatch):
     assert len({r.name for r in budget}) == 4 and all("--train-env-id" in r.command("d") for r in budget)
     exp12 = experiments.plan_runs(["exp1", "exp2"], "learn")
     assert {(r.family, r.size) for r in exp12} == {("reach", "F"), ("walker", "F")} and len(exp12) == 2 * 4 * 3
+    exp45 = experiments.plan_runs(["exp4", "exp5"], "learn")  # at the budget chosen from the curves: 2 x 20,000 steps
+    assert sorted({(r.method, r.rank) for r in exp45}) == [("claw", 1), ("claw", 4), ("claw", 8), ("claw", 16), ("concat", 8),
+                                                            ("film", 8), ("posthoc", 8)]
+    assert len(exp45) == 7 * 3 and all(r.size == "F" and "40000" in r.extra for r in exp45)
+    without_budget = {k: v for k, v in experiments.SCALES["learn"].items() if k != "exp345"}
+    monkeypatch.setitem(experiments.SCALES, "learn", without_budget)
     with pytest.raises(SystemExit, match="waits for its per-embodiment budget"):
         experiments.recipe("exp4", "learn")
     monkeypatch.setattr(aggregate, "random_policy_return", lambda family, env_id: 10.0 * (env_id + 1))
