@@ -221,6 +221,7 @@ def figure_budget(training, out) -> str | None:
         ax.fill_between(x, [a - b for a, b in zip(y, ci)], [a + b for a, b in zip(y, ci)], color=COLORS[points[0]["method"]], alpha=0.15)
         ax.axhline(points[0]["random_policy"], color="gray", linestyle="--", label="random policy")
         ax.set(title=f"{family} env {env_id}, size {points[0]['size']}", xlabel="agent steps", ylabel="training-episode return")
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value / 1000:g}k"))
         ax.legend(fontsize="small")
     fig.tight_layout()
     fig.savefig(os.path.join(out, "budget.png"), dpi=120)
