@@ -12,18 +12,16 @@ from benchmarks import context_controls
 from common.context import collect_episodes
 from common.envs import make_env
 from common.evaluation import offline_adaptation
+from test_claw import tiny_args
 
 N_ENVS = 6  # reach
 
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
-    run_dir = tmp_path_factory.mktemp("claw") / "run"
-    claw.main(claw.Args(family="reach", model_size="I", rank=2, total_timesteps=640, seed_steps=100, burst_updates=5,
-                        batch_size=16, num_samples=32, num_elites=8, num_pi_trajs=4, iterations=1,
-                        context_pool_episodes=2, context_episodes=1, log_every=100, checkpoint_every=10_000,
-                        cuda=False, compile="off", run_dir=str(run_dir), evaluate_after_training=False))
-    return str(run_dir / "checkpoint.pt")
+    args = tiny_args(tmp_path_factory.mktemp("claw"), iterations=1, log_every=100, compile="off")
+    claw.main(args)
+    return os.path.join(args.run_dir, "checkpoint.pt")
 
 
 def own_context(args, env_id, episodes):
