@@ -28,11 +28,13 @@ import os
 import sys
 from collections import defaultdict
 
+import scipy.stats
+
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
 
-from benchmarks.experiments import run_is_live  # noqa: E402
+from benchmarks.experiments import SIZE_RANKS, run_is_live  # noqa: E402
 from common.evaluation import mean_ci  # noqa: E402
 
 GROUP_KEYS = ("method", "family", "size", "rank")
@@ -92,13 +94,15 @@ def problem(run: dict) -> str | None:
         return f"status {run.get('status', 'unknown')}" + (f" (returncode {run['returncode']})" if "returncode" in run else "")
     if "budget" in run.get("experiments", []):
         return "a training curve (experiment budget), in training_curves.csv"
+    if run.get("method") == "controls":
+        return "context controls (experiment controls), in controls.md"
     if not run_metrics(run):
         return "finished without evaluation events"
     return None
 
 
-def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str, str]]]:
-    """-> summary rows, curve rows, [(run dir, problem)]."""
+def group_runs(runs: list[dict]) -> tuple[dict, list[tuple[str, str]]]:
+    """-> {(method, family, size, rank): [runs that differ only by seed]}, [(run dir, why it is not aggregated)]."""
     groups, problems = defaultdict(list), []
     for run in runs:
         issue = problem(run)
@@ -106,6 +110,12 @@ def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str,
             problems.append((run["dir"], issue))
         else:
             groups[tuple(run[k] for k in GROUP_KEYS)].append(run)
+    return groups, problems
+
+
+def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str, str]]]:
+    """-> summary rows, curve rows, [(run dir, problem)]."""
+    groups, problems = group_runs(runs)
     rows, curves = [], []
     for key, members in sorted(groups.items(), key=lambda kv: tuple(str(k) for k in kv[0])):
         per_metric = defaultdict(list)
@@ -184,6 +194,190 @@ def training_markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def controls_rows(runs: list[dict]) -> list[dict]:
+    """Experiment controls (benchmarks/context_controls.py on the CLAW Exp 1/2 checkpoints), per family: each seed's
+    family-mean return with its own context, with another environment's, their difference, and per context size;
+    then mean and 95% CI across seeds, and across (seed, environment) pairs (more pairs, but environments of one
+    seed share a network, so this CI is the optimistic one)."""
+    groups = defaultdict(list)
+    for run in runs:
+        path = os.path.join(run["dir"], "controls.json")
+        if run.get("method") == "controls" and run.get("status") == "done" and os.path.isfile(path):
+            with open(path) as f:
+                groups[(run["family"], run["size"], run["rank"])].append((run["seed"], json.load(f)))
+    rows = []
+    for (family, size, rank), members in sorted(groups.items()):
+        quantities = defaultdict(lambda: ([], []))  # name -> (per-seed means, per-(seed, env) values)
+
+        def add(name, per_env: dict):
+            values = [v for v in per_env.values() if not math.isnan(v)]  # online: an environment without a finished episode
+            if values:
+                quantities[name][0].append(sum(values) / len(values))
+                quantities[name][1].extend(values)
+
+        for _, result in members:
+            for protocol in result["swap"]["own"]:
+                own, swapped = result["swap"]["own"][protocol], result["swap"]["swapped"][protocol]
+                k = result["context_episodes"]
+                add(f"{protocol}: own context ({k} episodes)", own)
+                add(f"{protocol}: another environment's context", swapped)
+                add(f"{protocol}: own - another's", {e: own[e] - swapped[e] for e in own})
+            for episodes, per_env in sorted(result["size"].items(), key=lambda kv: int(kv[0])):
+                add(f"offline: {episodes}-episode own context", per_env)
+        for name, (per_seed, per_pair) in quantities.items():
+            mean, half = mean_ci(per_seed)
+            _, pair_half = mean_ci(per_pair)
+            rows.append({"family": family, "size": size, "rank": rank, "quantity": name, "n_seeds": len(per_seed),
+                         "mean": mean, "ci95_seeds": half, "n_pairs": len(per_pair), "ci95_pairs": pair_half,
+                         "seeds": ",".join(str(seed) for seed, _ in members)})
+    return rows
+
+
+def controls_markdown(rows: list[dict]) -> str:
+    lines = ["| family | size | rank | quantity | seeds | mean return | 95% CI across seeds | (seed, env) pairs | 95% CI across pairs |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['family']} | {r['size']} | {r['rank']} | {r['quantity']} | {r['n_seeds']} | {r['mean']:.1f} | "
+                     f"± {r['ci95_seeds']:.1f} | {r['n_pairs']} | ± {r['ci95_pairs']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+# The paper's claims, each tested on the runs at hand. A comparison "a > b" supports the claim when the 95% CI of
+# a - b lies above 0, contradicts it when it lies below 0, and cannot separate them otherwise. "a tracks b" (CLAW vs the
+# oracle) supports when a - b's CI lies above -TRACK_MARGIN x |mean of b| (an equivalence margin), contradicts when it
+# lies below 0. A claim is reproduced when every comparison supports it, not reproduced when one contradicts it.
+TRACK_MARGIN = 0.10
+
+
+def difference_ci(a: list[float], b: list[float], paired: bool = False) -> tuple[float, float, float]:
+    """(mean of a - b, 95% CI low, high): Welch's t for independent runs, the paired t for two values per run."""
+    if paired:
+        diff = [x - y for x, y in zip(a, b)]
+        mean, half = mean_ci(diff)
+        return mean, mean - half, mean + half
+    mean = sum(a) / len(a) - sum(b) / len(b)
+    if len(a) < 2 or len(b) < 2:
+        return mean, float("nan"), float("nan")
+    low, high = scipy.stats.ttest_ind(a, b, equal_var=False).confidence_interval(0.95)
+    return mean, float(low), float(high)
+
+
+def judge(low: float, high: float, margin: float | None = None) -> str:
+    """supports / contradicts / not separable for "a > b" (margin None) or "a tracks b" (low bound -margin)."""
+    if math.isnan(low):
+        return "not separable"
+    if high < 0:
+        return "contradicts"
+    return "supports" if low > (0 if margin is None else -margin) else "not separable"
+
+
+def seed_values(groups: dict) -> dict:
+    """{(method, family, size, rank): {(metric, x): {seed: value}}} from group_runs' groups."""
+    return {key: _by_metric(members) for key, members in groups.items()}
+
+
+def _by_metric(members: list[dict]) -> dict:
+    values = defaultdict(dict)
+    for run in members:
+        for metric, value in run_metrics(run).items():
+            values[metric][run["seed"]] = value
+    return values
+
+
+def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]:
+    """The five claims the issue names, each with its comparisons: {"claim", "verdict", "evidence": [lines]}."""
+    def runs_of(method, family, metric, x=None, size=None, rank=None):
+        """{seed: value} of the one group that matches (size/rank None: any, if only one group matches)."""
+        found = [v.get((metric, x), {}) for (m, f, s, r), v in values.items()
+                 if m == method and f == family and size in (None, s) and rank in (None, r)]
+        return found[0] if len(found) == 1 else {}
+
+    def compare(label, a: dict, b: dict, track_of=None, paired=False):
+        if len(a) < 2 or len(b) < 2:
+            return {"label": label, "verdict": "missing", "text": f"{label}: runs missing ({len(a)} vs {len(b)} seeds)"}
+        if paired:
+            seeds = sorted(set(a) & set(b))
+            mean, low, high = difference_ci([a[s] for s in seeds], [b[s] for s in seeds], paired=True)
+            n = f"paired over {len(seeds)} seeds"
+        else:
+            mean, low, high = difference_ci(list(a.values()), list(b.values()))
+            n = f"n = {len(a)} vs {len(b)}"
+        margin = None if track_of is None else TRACK_MARGIN * abs(sum(track_of.values()) / len(track_of))
+        verdict = judge(low, high, margin)
+        bound = "" if margin is None else f", margin {margin:.1f}"
+        return {"label": label, "verdict": verdict, "n": min(len(a), len(b)),
+                "text": f"{label}: {mean:+.1f} [{low:+.1f}, {high:+.1f}] ({n}{bound}): {verdict}"}
+
+    results = []
+    exp12_families = sorted({f for (m, f, s, r) in values if m in ("dr", "st", "oracle")})
+    parts = []
+    for family in exp12_families:
+        claw = runs_of("claw", family, "online_return")
+        oracle = runs_of("oracle", family, "online_return")
+        parts += [compare(f"{family} Exp 1 return, CLAW - DR", claw, runs_of("dr", family, "online_return")),
+                  compare(f"{family} Exp 1 return, CLAW - ST", claw, runs_of("st", family, "online_return")),
+                  compare(f"{family} Exp 1 return, CLAW - Oracle (tracks)", claw, oracle, track_of=oracle)]
+    if not exp12_families:
+        parts = [{"label": "exp12", "verdict": "missing", "n": 0, "text": "no finished DR, ST or Oracle run"}]
+    results.append(("CLAW tracks the oracle and beats DR and ST online (Exp 1)", parts))
+    parts = []
+    for family in exp12_families:
+        claw = runs_of("claw", family, "offline_return", 0)
+        for method in ("dr", "st", "oracle"):
+            sweep = {x: v for (m, f, s, r), groups in values.items() if m == method and f == family
+                     for (metric, x), v in groups.items() if metric == "offline_return"}
+            if len(sweep) < 2:
+                parts.append(compare(f"{family} Exp 2 {method.upper()}", {}, {}))
+                continue
+            most = max(sweep)
+            peak = max((x for x in sweep if x != most), key=lambda x: sum(sweep[x].values()) / len(sweep[x]))
+            parts.append(compare(f"{family} Exp 2 {method.upper()} collapses: return at {peak} steps (its best) - at {most}",
+                                 sweep[peak], sweep[most], paired=True))
+            if method != "oracle":
+                parts.append(compare(f"{family} Exp 2 CLAW (one pass) - {method.upper()} at {most} steps", claw, sweep[most]))
+    results.append(("Gradient methods collapse with many offline steps, CLAW does not (Exp 2)", parts or results[0][1]))
+    claw = runs_of("claw", "cheetah_walker", "online_return", size=exp4_size, rank=exp4_rank)
+    results.append((f"CLAW beats FiLM and Concat at mid sizes (Exp 3/4, size {exp4_size})",
+                    [compare(f"cheetah_walker return, CLAW r{exp4_rank} - {m}", claw, runs_of(m, "cheetah_walker", "online_return", size=exp4_size))
+                     for m in ("film", "concat")]))
+    ranks = [(r, v) for (m, f, s, r), groups in values.items() if m == "claw" and f == "cheetah_walker" and s == exp4_size
+             for v in groups.get(("online_return", None), {}).values()]
+    if len({r for r, _ in ranks}) >= 3:
+        fit = scipy.stats.linregress([math.log2(r) for r, _ in ranks], [v for _, v in ranks])
+        half = fit.stderr * scipy.stats.t.ppf(0.975, len(ranks) - 2)
+        verdict = judge(fit.slope - half, fit.slope + half)
+        part = {"label": "slope", "verdict": verdict, "n": len(ranks) // len({r for r, _ in ranks}),
+                "text": f"cheetah_walker return per doubling of rank (least squares over {len(ranks)} runs, ranks "
+                        f"{sorted({r for r, _ in ranks})}): {fit.slope:+.1f} [{fit.slope - half:+.1f}, {fit.slope + half:+.1f}]: {verdict}"}
+    else:
+        part = {"label": "slope", "verdict": "missing", "text": "return vs rank: fewer than 3 ranks finished"}
+    results.append((f"Return rises with LoRA rank (Exp 4, size {exp4_size})", [part]))
+    results.append(("Joint training beats the post-hoc hypernetwork (Exp 5, Cheetah)",
+                    [compare(f"cheetah return, CLAW r{exp4_rank} - post-hoc", runs_of("claw", "cheetah_walker", "online_return_env0", size=exp4_size, rank=exp4_rank),
+                             runs_of("posthoc", "cheetah_walker", "online_return_env0", size=exp4_size))]))
+    out = []
+    for claim, parts in results:
+        verdicts = {p["verdict"] for p in parts}
+        if not parts or "missing" in verdicts:
+            verdict = "runs missing"
+        elif "contradicts" in verdicts:
+            verdict = "not reproduced"
+        elif verdicts == {"supports"}:
+            verdict = "reproduced"
+        else:
+            verdict = f"not separable at n = {max(p['n'] for p in parts)}"
+        out.append({"claim": claim, "verdict": verdict, "evidence": [p["text"] for p in parts]})
+    return out
+
+
+def claims_markdown(results: list[dict]) -> str:
+    lines = [f"Differences of means with 95% CIs (Welch's t across seeds; paired t where both values come from the same runs). "
+             f"'tracks': within {TRACK_MARGIN:.0%} of the oracle's return.", ""]
+    for r in results:
+        lines += [f"- **{r['claim']}: {r['verdict']}**"] + [f"  - {line}" for line in r["evidence"]]
+    return "\n".join(lines) + "\n"
+
+
 def write_csv(path: str, rows: list[dict]):
     if not rows:
         return
@@ -210,6 +404,8 @@ def markdown(rows: list[dict], problems: list[tuple[str, str]], duplicated: list
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("root", help="sweep directory, e.g. runs/sweeps/cpu")
+    parser.add_argument("--exp4-size", default="F", choices=list(SIZE_RANKS),
+                        help="model size of the Exp 3/4/5 claims (rank: the size's Exp 3 rank); the cpu scale's is H")
     cli = parser.parse_args(argv)
     runs = load_runs(cli.root)
     if not runs:
@@ -223,6 +419,16 @@ def main(argv=None):
         with open(os.path.join(cli.root, "training_curves.md"), "w") as f:
             f.write(training_markdown(training))
         print(training_markdown(training))
+    controls = controls_rows(runs)
+    if controls:
+        write_csv(os.path.join(cli.root, "controls.csv"), controls)
+        with open(os.path.join(cli.root, "controls.md"), "w") as f:
+            f.write(controls_markdown(controls))
+        print(controls_markdown(controls))
+    verdicts = claims_markdown(claims(seed_values(group_runs(runs)[0]), cli.exp4_size, SIZE_RANKS[cli.exp4_size]))
+    with open(os.path.join(cli.root, "claims.md"), "w") as f:
+        f.write(verdicts)
+    print(verdicts)
     duplicated = [(run["dir"], run["duplicated"]) for run in runs if run["duplicated"]]
     for run_dir, tags in duplicated:
         print(f"warning: {run_dir} has duplicated steps in {len(tags)} tag(s), e.g. {tags[0]}; kept the last value per step")

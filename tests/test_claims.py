@@ -1,0 +1,97 @@
+"""aggregate.py's claim verdicts and context-control tables, on synthetic runs with known answers."""
+import json
+
+import pytest
+import scipy.stats
+
+from benchmarks import aggregate
+from common.evaluation import mean_ci
+
+
+def fake_run(method, family, seed, scalars, size="F", rank=16):
+    return {"dir": f"/nonexistent/{method}{family}{size}{rank}{seed}", "method": method, "family": family, "size": size,
+            "rank": rank, "seed": seed, "status": "done", "experiments": [], "scalars": scalars}
+
+
+def online(values):
+    return {"eval/online/episodic_return": [(100, values)]}
+
+
+def verdicts(runs, **kwargs):
+    results = aggregate.claims(aggregate.seed_values(aggregate.group_runs(runs)[0]), **kwargs)
+    return {r["claim"].split(" (")[0]: r for r in results}
+
+
+def test_exp1_claim_follows_welch_intervals_and_the_oracle_margin():
+    returns = {"claw": [100.0, 104.0, 108.0], "dr": [50.0, 55.0, 52.0], "oracle": [101.0, 106.0, 107.0]}
+    runs = [fake_run(m, "reach", seed, online(v)) for m, vs in returns.items() for seed, v in enumerate(vs, 1)]
+    missing = verdicts(runs)["CLAW tracks the oracle and beats DR and ST online"]
+    assert missing["verdict"] == "runs missing" and any("CLAW - ST: runs missing" in e for e in missing["evidence"])
+
+    def claim(st_returns):
+        more = [fake_run("st", "reach", seed, online(v)) for seed, v in enumerate(st_returns, 1)]
+        return verdicts(runs + more)["CLAW tracks the oracle and beats DR and ST online"]
+
+    beaten = claim([60.0, 62.0, 58.0])
+    assert beaten["verdict"] == "reproduced"
+    low, high = scipy.stats.ttest_ind(returns["claw"], returns["dr"], equal_var=False).confidence_interval(0.95)
+    assert f"CLAW - DR: +51.7 [{low:+.1f}, {high:+.1f}] (n = 3 vs 3): supports" in beaten["evidence"][0]
+    assert beaten["evidence"][2].endswith("margin 10.5): supports")  # within 10% of the oracle's 104.7
+    assert claim([200.0, 210.0, 205.0])["verdict"] == "not reproduced"  # ST clearly better
+    assert claim([40.0, 100.0, 170.0])["verdict"] == "not separable at n = 3"
+
+
+def test_exp2_collapse_is_paired_against_the_best_earlier_sweep_point():
+    def sweep(values):  # x = 0, 10, 1000 offline steps
+        return {"eval/offline/episodic_return": [(0, values[0]), (10, values[1]), (1000, values[2])]}
+
+    runs = [fake_run("claw", "walker", s, {"eval/offline/episodic_return": [(0, 300.0 + s)]}) for s in (1, 2, 3)]
+    runs += [fake_run("dr", "walker", s, sweep([200.0 + s, 250.0 + 2 * s, 100.0 + s])) for s in (1, 2, 3)]
+    runs += [fake_run("st", "walker", s, sweep([150.0, 160.0 + s, 170.0 + 3 * s])) for s in (1, 2, 3)]
+    runs += [fake_run("oracle", "walker", s, sweep([400.0, 420.0 + s, 200.0 * s])) for s in (1, 2, 3)]
+    claim = verdicts(runs)["Gradient methods collapse with many offline steps, CLAW does not"]
+    lines = {line.split(":")[0]: line for line in claim["evidence"]}
+    dr = lines["walker Exp 2 DR collapses"]
+    assert "return at 10 steps (its best) - at 1000" in dr and "paired over 3 seeds" in dr and dr.endswith("supports")
+    mean, half = mean_ci([150.0 + s for s in (1, 2, 3)])
+    assert f"+{mean:.1f} [{mean - half:+.1f}, {mean + half:+.1f}]" in dr
+    assert lines["walker Exp 2 ST collapses"].endswith("contradicts")  # ST improves with steps here
+    assert lines["walker Exp 2 CLAW (one pass) - DR at 1000 steps"].endswith("supports")
+    assert claim["verdict"] == "not reproduced"
+
+
+def test_rank_slope_and_exp5_posthoc_comparison():
+    runs = [fake_run("claw", "cheetah_walker", s, {**online(50.0 * r.bit_length() + s), "eval/online/env0/episodic_return": [(100, 80.0 + s)]},
+                     rank=r) for r in (1, 4, 8, 16) for s in (1, 2, 3)]
+    runs += [fake_run("posthoc", "cheetah_walker", s, {"eval/online/env0/episodic_return": [(100, 80.0 + 2 * s - 1)]}, rank=8)
+             for s in (1, 2, 3)]
+    runs += [fake_run(m, "cheetah_walker", s, online(10.0 * s), rank=8) for m in ("film", "concat") for s in (1, 2, 3)]
+    claims = verdicts(runs)
+    slope = claims["Return rises with LoRA rank"]
+    assert slope["verdict"] == "reproduced" and "ranks [1, 4, 8, 16]" in slope["evidence"][0] and "+50.0 [" in slope["evidence"][0]
+    assert claims["CLAW beats FiLM and Concat at mid sizes"]["verdict"] == "reproduced"
+    assert claims["Joint training beats the post-hoc hypernetwork"]["verdict"] == "not separable at n = 3"
+    assert verdicts(runs, exp4_size="H", exp4_rank=2)["Return rises with LoRA rank"]["verdict"] == "runs missing"
+
+
+def test_controls_rows_average_environments_per_seed_then_across_seeds(tmp_path):
+    runs = []
+    for seed in (1, 2, 3):
+        own = {str(e): 100.0 + 10 * e + seed for e in range(3)}
+        swapped = {str(e): 90.0 + 10 * e for e in range(3)}
+        result = {"family": "reach", "n_envs": 3, "context_episodes": 3, "swap_offset": 1, "eval_episodes": 2,
+                  "online_eval_steps": 0, "swap": {"own": {"offline": own}, "swapped": {"offline": swapped}},
+                  "size": {"1": swapped, "10": own}}
+        run_dir = tmp_path / f"controls{seed}"
+        run_dir.mkdir()
+        (run_dir / "controls.json").write_text(json.dumps(result))
+        runs.append({"dir": str(run_dir), "method": "controls", "family": "reach", "size": "F", "rank": 16, "seed": seed,
+                     "status": "done", "experiments": ["controls"], "scalars": {}})
+    assert aggregate.problem(runs[0]) == "context controls (experiment controls), in controls.md"
+    rows = {r["quantity"]: r for r in aggregate.controls_rows(runs)}
+    drop = rows["offline: own - another's"]
+    assert drop["mean"] == pytest.approx(12.0) and drop["ci95_seeds"] == pytest.approx(mean_ci([11.0, 12.0, 13.0])[1])
+    assert drop["n_pairs"] == 9 and drop["ci95_pairs"] == pytest.approx(mean_ci([10.0 + s for s in (1, 2, 3) for _ in range(3)])[1])
+    assert list(rows)[-2:] == ["offline: 1-episode own context", "offline: 10-episode own context"]
+    assert rows["offline: own context (3 episodes)"]["mean"] == pytest.approx(112.0)
+    assert "| reach | F | 16 | offline: own - another's | 3 | 12.0 |" in aggregate.controls_markdown(aggregate.controls_rows(runs))
