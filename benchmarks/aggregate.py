@@ -10,7 +10,7 @@ Metrics per run (keys written by every method script):
                                    (CLAW, FiLM, Concat: x = 0, their single adaptation pass)
   online_return_env{j}             Exp 1 return in environment j alone
 Curves (Exp 1): family-averaged return and success per test-time step, averaged across seeds.
-Training curves (experiment budget: one embodiment per run, no evaluation protocol): the mean
+Training curves (ST runs: experiment budget's, one embodiment per run, and Exp 1/2's): the mean
 training-episode return per window of agent steps, per seed, then mean and 95% CI across seeds,
 beside the random policy's return (training_curves.csv / training_curves.md).
 Runs that failed, are still running (their run.lock is held), died, or lack evaluation events are listed,
@@ -161,12 +161,13 @@ def random_policy_return(family: str, env_id: int, episodes: int = 10, seed: int
 
 
 def training_curves(runs: list[dict], window: int = 2500) -> list[dict]:
-    """Learning curves of the budget runs, finished or not: the mean training-episode return (charts/episodic_return,
+    """Learning curves of the ST runs, finished or not: the mean training-episode return (charts/episodic_return,
     the planner with its exploration noise) per window of `window` agent steps, per seed, then across seeds."""
     groups = defaultdict(list)
     for run in runs:
-        if "budget" in run.get("experiments", []):
-            groups[(run["method"], run["family"], train_env_of(run), run["size"])].append(run)
+        if run.get("method") == "st":  # the budget runs, and Exp 1/2's ST runs (does the single task learn by then?)
+            env_id = train_env_of(run)
+            groups[(run["method"], run["family"], 0 if env_id is None else env_id, run["size"])].append(run)  # 0: ST's default
     rows = []
     for (method, family, env_id, size), members in sorted(groups.items(), key=lambda kv: str(kv[0])):
         by_window = defaultdict(list)

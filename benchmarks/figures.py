@@ -7,7 +7,7 @@ exp2.png  return (and success) vs offline gradient steps (symlog x); CLAW's pass
 exp3.png  Cheetah/Walker return vs base parameter count (log x) for CLAW, FiLM, Concat; ratio to CLAW
 exp4.png  return vs LoRA rank, and vs adapter size as % of the world model, FiLM/Concat for reference
 exp5.png  Cheetah return: CLAW (joint) vs post-hoc hypernet
-budget.png  single-embodiment training curves (experiment budget) beside the random policy's return
+budget.png  ST training curves (experiment budget, and Exp 1/2's ST runs) beside the random policy's return
 A figure whose runs are missing is skipped with a message. Bands and error bars are 95% t-CIs.
 """
 from __future__ import annotations
@@ -212,7 +212,7 @@ def figure_budget(training, out) -> str | None:
     """One panel per trained embodiment: mean training-episode return per step window, 95% CI band, random policy."""
     embodiments = sorted({(r["family"], r["train_env"]) for r in training}, key=str)
     if not embodiments:
-        return "budget: no budget runs"
+        return "budget: no ST runs"
     fig, axes = plt.subplots(1, len(embodiments), figsize=(4.5 * len(embodiments), 3.5), squeeze=False)
     for ax, (family, env_id) in zip(axes[0], embodiments):
         points = [r for r in training if (r["family"], r["train_env"]) == (family, env_id)]

@@ -1,4 +1,4 @@
-"""aggregate.py's claim verdicts and context-control tables, on synthetic runs with known answers."""
+"""aggregate.py on synthetic runs with known answers: claim verdicts, context-control tables, ST training curves."""
 import json
 
 import pytest
@@ -95,3 +95,14 @@ def test_controls_rows_average_environments_per_seed_then_across_seeds(tmp_path)
     assert list(rows)[-2:] == ["offline: 1-episode own context", "offline: 10-episode own context"]
     assert rows["offline: own context (3 episodes)"]["mean"] == pytest.approx(112.0)
     assert "| reach | F | 16 | offline: own - another's | 3 | 12.0 |" in aggregate.controls_markdown(aggregate.controls_rows(runs))
+
+
+def test_exp12_st_runs_have_training_curves_beside_the_budget_runs(monkeypatch):
+    monkeypatch.setattr(aggregate, "random_policy_return", lambda family, env_id: 5.0)
+    runs = [{"method": "st", "family": "walker", "size": "F", "seed": s, "experiments": ["exp1", "exp2"],
+             "command": "python st_tdmpc2.py --family walker", "scalars": {"charts/episodic_return": [(2500, 10.0 * s)]}}
+            for s in (1, 2)]
+    runs.append({"method": "dr", "family": "walker", "size": "F", "seed": 1, "experiments": ["exp1"],
+                 "scalars": {"charts/episodic_return": [(2500, 99.0)]}})
+    rows = aggregate.training_curves(runs)
+    assert [(r["family"], r["train_env"], r["step"], r["n"], r["mean"]) for r in rows] == [("walker", 0, 2500, 2, 15.0)]
