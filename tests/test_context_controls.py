@@ -1,5 +1,6 @@
 """benchmarks/context_controls.py: the own arm is CLAW's evaluation, the swapped arm feeds another environment's
 context, arms are deterministic, and bad checkpoints are one-line errors."""
+import json
 import os
 import random
 
@@ -86,9 +87,13 @@ def test_own_arm_is_claws_evaluation_and_swapped_arm_feeds_the_other_context(che
 
 def test_two_runs_print_identical_tables(checkpoint, tmp_path, capsys):
     argv = [checkpoint, "--context-episodes", "1", "--eval-episodes", "1", "--swap-offset", "2"]
-    first = context_controls.main([*argv, "--out", str(tmp_path / "a.md")])
+    first = context_controls.main([*argv, "--out", str(tmp_path / "a.md"), "--json", str(tmp_path / "a.json")])
     second = context_controls.main([*argv, "--out", str(tmp_path / "b.md")])
     assert first == second
+    saved = json.loads((tmp_path / "a.json").read_text())  # the same numbers; JSON's keys are strings
+    assert saved["swap"]["own"]["offline"] == {str(j): v for j, v in first["swap"]["own"]["offline"].items()}
+    assert saved["size"] == {str(k): {str(j): v for j, v in column.items()} for k, column in first["size"].items()}
+    assert saved["swap_offset"] == 2 and not (tmp_path / "a.json.tmp").exists()
     text = (tmp_path / "a.md").read_text()
     assert text == (tmp_path / "b.md").read_text() and capsys.readouterr().out.count(text) == 2
     assert text.count("| mean ± 95% CI |") == 2 and "context of env (j+2) mod 6" in text and "Exp 1 online" not in text
