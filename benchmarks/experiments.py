@@ -1,4 +1,4 @@
-"""One-command recipes for the paper's Experiments 1-5, and the sweep launcher that runs them.
+"""One-command recipes for the paper's Experiments 1-5 and the context controls, and the sweep launcher that runs them.
 
     python benchmarks/experiments.py exp1 --dry-run            # list the commands (paper scale)
     python benchmarks/experiments.py exp1 exp2 --scale cpu --launcher local --workers 2
@@ -16,6 +16,11 @@ restarted launcher skips runs that are "done" or live (lock held) and resumes, w
 that died (lock free, checkpoint present); it prints a finished run whose recorded command differs
 from the recipe's. Exp 1 and Exp 2 share pretraining runs (each run evaluates both protocols), and
 Exp 3, 4 and 5 share the size-F CLAW runs, so a run needed by several experiments runs once.
+Experiment controls (issue 14) trains nothing: one run per Exp 1/2 family and seed evaluates that CLAW run's
+checkpoint with benchmarks/context_controls.py (own vs another environment's context, context sizes 1, 3, 10),
+writing controls.json and controls.md in its run directory, with each scale's Exp 1/2 evaluation settings
+(SCALES[scale]["controls"]). It waits for its CLAW run: the launcher starts it once that run is "done" (rerun
+the launcher after the training runs finish; `exp1 exp2 controls` lists the training runs first).
 
 Scales:
   paper  the paper's tables: families, sizes, ranks, budgets, 5 seeds (GPU work).
@@ -54,6 +59,7 @@ import submitit
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPTS = {m: f"{m}_tdmpc2.py" for m in ("claw", "dr", "st", "oracle", "film", "concat", "posthoc")}
+SCRIPTS["controls"] = os.path.join("benchmarks", "context_controls.py")  # evaluation only: Run.command
 # Paper Table "Experiment 3 model-size sweep": LoRA rank tied to size.
 LOCK = "run.lock"  # held by the process that runs the run, for the run's lifetime (lock_run)
 SIZE_RANKS = {"A": 16, "B": 16, "D": 16, "E": 16, "F": 8, "G": 4, "H": 2, "I": 1}
@@ -66,6 +72,9 @@ SCALES = {
         "exp3_sizes": tuple(SIZE_RANKS), "exp4_size": "F", "exp4_ranks": (1, 2, 4, 8, 16, 32),
         "common": [],
         "exp345": ["--online-eval-steps", "5000"],  # 10 episodes of 500 agent steps, re-adapting every step
+        # the CLAW runs' 10 offline episodes; no online arm: the controls run on the CPU, where 30,000 online steps
+        # per environment and arm at size A do not fit
+        "controls": ["--eval-episodes", "10", "--context-episodes", "1", "3", "10", "--compile", "on"],
     },
     "cpu": {
         "seeds": (1, 2, 3),
@@ -77,6 +86,7 @@ SCALES = {
                    "--eval-episodes", "3", "--log-every", "500", "--checkpoint-every", "1000"],
         "exp12": ["--online-eval-steps", "600", "--offline-adapt-steps", "0", "1", "10", "100"],
         "exp345": ["--online-eval-steps", "1000"],
+        "controls": ["--eval-episodes", "3", "--online-eval-steps", "600", "--context-episodes", "1", "3", "10"],
     },
     "learn": {
         "seeds": (1, 2, 3),
@@ -89,6 +99,10 @@ SCALES = {
         "budget": ["--total-timesteps", "40000", "--no-evaluate-after-training"], "budget_seeds": (1, 2),
         "exp3_sizes": ("F",), "exp4_size": "F", "exp4_ranks": (1, 4, 8, 16),
         "exp345": ["--total-timesteps", "40000", "--online-eval-steps", "5000"],  # 2 x the 20,000-step budget
+        # the Exp 1/2 evaluation of each family; the compiled planner: ~1.7x faster evaluation at size F
+        "controls": ["--context-episodes", "1", "3", "10", "--compile", "on"],
+        "controls_family": {"reach": ["--eval-episodes", "10", "--online-eval-steps", "2000"],
+                            "walker": ["--eval-episodes", "2", "--online-eval-steps", "1000"]},
     },
     "smoke": {
         "seeds": (1, 2),
@@ -101,6 +115,7 @@ SCALES = {
                    "--eval-episodes", "1", "--log-every", "10"],
         "exp12": ["--online-eval-steps", "100", "--offline-adapt-steps", "0", "1"],
         "exp345": ["--online-eval-steps", "100", "--total-timesteps", "1100"],  # beyond cheetah_walker's 1000-step prefill (last flag wins)
+        "controls": ["--eval-episodes", "1", "--online-eval-steps", "20", "--context-episodes", "1", "2"],
     },
 }
 
@@ -115,6 +130,7 @@ class Run:
     extra: list = field(default_factory=list)
     experiments: list = field(default_factory=list)
     train_env: int | None = None  # ST's --train-env-id, where a recipe names it
+    needs: str | None = None  # the run whose checkpoint this one evaluates (experiment controls)
 
     @property
     def name(self) -> str:
@@ -122,6 +138,10 @@ class Run:
         return f"{self.method}__{self.family}{env}__{self.size}__r{self.rank}__s{self.seed}"
 
     def command(self, run_dir: str, cuda: bool = False) -> list[str]:
+        if self.method == "controls":  # the checkpoint carries its run's arguments; the controls run on the CPU
+            checkpoint = os.path.join(os.path.dirname(run_dir), self.needs, "checkpoint.pt")
+            return [sys.executable, os.path.join(REPO, SCRIPTS[self.method]), checkpoint, *self.extra,
+                    "--json", os.path.join(run_dir, "controls.json"), "--out", os.path.join(run_dir, "controls.md")]
         family = [] if self.method == "posthoc" else ["--family", self.family]
         rank = [] if self.method in ("film", "concat") else ["--rank", str(self.rank)]  # no LoRA, no rank
         device = [] if cuda else ["--no-cuda"]
@@ -140,6 +160,12 @@ def recipe(experiment: str, scale: str) -> list[Run]:
                     extra = s.get("exp12", []) if method != "claw" else _without_sweep(s.get("exp12", []))
                     extra = extra + s.get("exp12_family", {}).get(family, [])
                     runs.append(Run(method, family, s["exp12_size"], s["exp12_rank"], seed, s["common"] + extra))
+    elif experiment == "controls":  # evaluation only: the Exp 1/2 CLAW runs' checkpoints
+        for family in s["exp12_families"]:
+            for seed in s["seeds"]:
+                trained = Run("claw", family, s["exp12_size"], s["exp12_rank"], seed)
+                runs.append(Run("controls", family, trained.size, trained.rank, seed,
+                                s["controls"] + s.get("controls_family", {}).get(family, []), needs=trained.name))
     elif experiment == "budget":  # single-task learning curves on each Cheetah/Walker embodiment
         if "budget" not in s:
             raise SystemExit(f"error: experiment budget is defined at scale learn only, not {scale}")
@@ -165,7 +191,7 @@ def recipe(experiment: str, scale: str) -> list[Run]:
             for method in ("claw", "posthoc"):
                 runs.append(Run(method, "cheetah_walker", size, SIZE_RANKS[size], seed, s["common"] + s["exp345"]))
     else:
-        raise SystemExit(f"error: unknown experiment {experiment!r}; valid: budget exp1 exp2 exp3 exp4 exp5")
+        raise SystemExit(f"error: unknown experiment {experiment!r}; valid: budget controls exp1 exp2 exp3 exp4 exp5")
     for run in runs:
         run.experiments.append(experiment)
     return runs
@@ -183,7 +209,8 @@ def _without_sweep(extra: list) -> list:
 
 
 def plan_runs(experiments: list[str], scale: str) -> list[Run]:
-    """All runs of the experiments, each distinct run once (shared runs list every experiment)."""
+    """All runs of the experiments, each distinct run once (shared runs list every experiment); runs that need
+    another run's checkpoint last."""
     unique: dict[str, Run] = {}
     for experiment in experiments:
         for run in recipe(experiment, scale):
@@ -191,7 +218,7 @@ def plan_runs(experiments: list[str], scale: str) -> list[Run]:
                 unique[run.name].experiments.append(experiment)
             else:
                 unique[run.name] = run
-    return list(unique.values())
+    return sorted(unique.values(), key=lambda run: run.needs is not None)  # stable: the recipes' order otherwise
 
 
 def read_status(run_dir: str) -> dict:
@@ -365,6 +392,9 @@ def pending_runs(runs: list[Run], root: str, cuda: bool = False) -> list[tuple[R
         if record.get("status") in ("queued", "requeued") and slurm_queued(record.get("slurm_job")):
             print(f"skip (queued {record['slurm_job']}) {run.name}")
             continue
+        if run.needs and read_status(os.path.join(root, run.needs)).get("status") != "done":
+            print(f"wait (needs {run.needs} done) {run.name}")
+            continue
         resume = resume_args(run_dir)
         print(("resume " if resume else "run    ") + shlex.join(command + resume))
         pending.append((run, run_dir))
@@ -470,7 +500,7 @@ def parse_minutes(text: str) -> int:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("experiments", nargs="+", choices=["budget", "exp1", "exp2", "exp3", "exp4", "exp5"])
+    parser.add_argument("experiments", nargs="+", choices=["budget", "controls", "exp1", "exp2", "exp3", "exp4", "exp5"])
     parser.add_argument("--scale", choices=list(SCALES), default="paper")
     parser.add_argument("--launcher", choices=["local", "slurm"], default="local",
                         help="local: runs on this machine; slurm: submits a job array and returns")

@@ -180,7 +180,11 @@ def test_grouping_reports_incomplete_runs(tmp_path):
 def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     runs = [r for r in experiments.plan_runs(["exp1"], "smoke") if r.method == "claw"]
     assert len(runs) == 2
-    assert experiments.launch(runs, str(tmp_path), workers=2, dry_run=False) == 0
+    control = experiments.recipe("controls", "smoke")[0]  # evaluates runs[0]'s checkpoint: waits for it
+    assert control.needs == runs[0].name
+    assert experiments.launch(runs + [control], str(tmp_path), workers=2, dry_run=False) == 0
+    assert f"wait (needs {runs[0].name} done) {control.name}" in capsys.readouterr().out
+    assert not (tmp_path / control.name).exists()
     assert all(json.load(open(tmp_path / r.name / "run.json"))["status"] == "done" for r in runs)
     aggregate.main([str(tmp_path)])
     summary = (tmp_path / "summary.md").read_text()
@@ -189,15 +193,49 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     assert figures.figure_exp1(rows, curves, str(tmp_path)) == "exp1: no DR/ST/Oracle runs"
     # the identifiability diagnostic reads a sweep's CLAW checkpoint
     inspect_adapters.main([str(tmp_path / runs[0].name / "checkpoint.pt"), "--episodes", "1"])
-    # the launcher skips finished runs on a second call
-    assert experiments.launch(runs, str(tmp_path), workers=1, dry_run=False) == 0
+    # the launcher skips finished runs on a second call, and starts the control that waited for them
+    assert experiments.launch(runs + [control], str(tmp_path), workers=1, dry_run=False) == 0
     out = capsys.readouterr().out
     assert "delta phi (world model)" in out and "gradient norms of one world-model loss" in out
-    assert f"skip (done)  {runs[0].name}" in out
+    assert f"skip (done)  {runs[0].name}" in out and f"done   {control.name}" in out
+    result = json.load(open(tmp_path / control.name / "controls.json"))
+    assert sorted(result["size"]) == ["1", "2"] and sorted(result["swap"]["own"]["offline"]) == [str(j) for j in range(6)]
+    assert "## Context size" in (tmp_path / control.name / "controls.md").read_text()
+    assert str(tmp_path / control.name) in dict(aggregate.summarize(aggregate.load_runs(str(tmp_path)))[2])  # not a training run
     # a CLAW-only sweep still draws its curves
     fig_rows = [dict(r, method="dr") for r in curves]
     assert figures.figure_exp1(rows, curves + fig_rows, str(tmp_path)) is None
     assert os.path.getsize(tmp_path / "exp1.png") > 1000
+
+
+def test_controls_recipe_evaluates_the_exp12_claw_checkpoints_once_they_are_done(tmp_path, capsys):
+    controls = experiments.recipe("controls", "learn")
+    assert sorted((r.family, r.seed) for r in controls) == [(f, s) for f in ("reach", "walker") for s in (1, 2, 3)]
+    for run in controls:
+        trained = experiments.Run("claw", run.family, "F", 16, run.seed)
+        run_dir = tmp_path / run.name
+        command = run.command(str(run_dir))
+        assert run.needs == trained.name and command[1].endswith("benchmarks/context_controls.py")
+        assert command[2] == str(tmp_path / trained.name / "checkpoint.pt")
+        assert command[-4:] == ["--json", str(run_dir / "controls.json"), "--out", str(run_dir / "controls.md")]
+        assert command[command.index("--eval-episodes") + 1] == {"reach": "10", "walker": "2"}[run.family]
+        assert "--compile" in command and "--seed" not in command and "--no-cuda" not in command  # the checkpoint's own
+    planned = experiments.plan_runs(["controls", "exp1"], "smoke")  # training first, whatever the order asked
+    assert [r.method for r in planned][-2:] == ["controls", "controls"] and "controls" not in [r.method for r in planned[:-2]]
+    control = planned[-1]
+    trained = next(r for r in planned if r.name == control.needs)
+    for status in (None, "running", "failed", "done"):
+        if status:
+            experiments.write_status(str(tmp_path / trained.name), trained, trained.command(str(tmp_path / trained.name)), status)
+        pending = experiments.pending_runs([control], str(tmp_path))
+        out = capsys.readouterr().out
+        if status != "done":
+            assert pending == [] and out == f"wait (needs {trained.name} done) {control.name}\n"
+        else:
+            assert pending == [(control, str(tmp_path / control.name))]
+            assert out == "run    " + experiments.shlex.join(control.command(str(tmp_path / control.name))) + "\n"
+    experiments.main(["exp1", "controls", "--scale", "smoke", "--dry-run", "--root", str(tmp_path / "cli")])
+    assert capsys.readouterr().out.count("wait (needs claw__reach__I__r2__s") == 2
 
 
 def test_context_identifiability_statistics_on_synthetic_contexts():
