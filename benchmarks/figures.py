@@ -7,6 +7,7 @@ exp2.png  return (and success) vs offline gradient steps (symlog x); CLAW's pass
 exp3.png  Cheetah/Walker return vs base parameter count (log x) for CLAW, FiLM, Concat; ratio to CLAW
 exp4.png  return vs LoRA rank, and vs adapter size as % of the world model, FiLM/Concat for reference
 exp5.png  Cheetah return: CLAW (joint) vs post-hoc hypernet
+controls.png  CLAW with its own vs another environment's context, and return vs context size (experiment controls)
 budget.png  ST training curves (experiment budget, and Exp 1/2's ST runs) beside the random policy's return
 A figure whose runs are missing is skipped with a message. Bands and error bars are 95% t-CIs.
 """
@@ -25,7 +26,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import matplotlib.ticker  # noqa: E402
 
-from benchmarks.aggregate import load_runs, summarize, training_curves  # noqa: E402
+from benchmarks.aggregate import controls_rows, load_runs, summarize, training_curves  # noqa: E402
 from benchmarks.experiments import SIZE_RANKS  # noqa: E402
 
 COLORS = {"claw": "tab:red", "dr": "tab:blue", "st": "tab:green", "oracle": "black", "film": "tab:purple",
@@ -228,6 +229,29 @@ def figure_budget(training, out) -> str | None:
     return None
 
 
+def figure_controls(controls, out) -> str | None:
+    """Per family: returns with the own context vs another environment's (each protocol), and against context size."""
+    families = sorted({r["family"] for r in controls})
+    if not families:
+        return "controls: no finished controls runs"
+    fig, axes = plt.subplots(2, len(families), figsize=(4.5 * len(families), 7), squeeze=False)
+    for (top, bottom), family in zip(axes.T, families):
+        rows = [r for r in controls if r["family"] == family]
+        swap = [r for r in rows if ": own context (" in r["quantity"] or ": another environment's" in r["quantity"]]
+        top.bar([r["quantity"].replace(": ", "\n") for r in swap], [r["mean"] for r in swap], yerr=[_ci(r["ci95_seeds"]) for r in swap],
+                color=["tab:red" if "own" in r["quantity"] else "tab:gray" for r in swap], capsize=4)
+        top.tick_params(axis="x", labelsize="small")
+        top.set(title=f"{family}, seeds {rows[0]['seeds']}\nown vs another environment's context", ylabel="episode return")
+        sizes = sorted((int(r["quantity"].split("offline: ")[1].split("-")[0]), r) for r in rows if "-episode own context" in r["quantity"])
+        bottom.errorbar([k for k, _ in sizes], [r["mean"] for _, r in sizes], yerr=[_ci(r["ci95_seeds"]) for _, r in sizes],
+                        color=COLORS["claw"], marker="o", capsize=4)
+        bottom.set(xscale="log", xlabel="pi_con episodes in the context", ylabel="offline episode return", title=f"{family}: context size")
+        bottom.set_xticks([k for k, _ in sizes], [str(k) for k, _ in sizes])
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "controls.png"), dpi=120)
+    return None
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("root", help="sweep directory, e.g. runs/sweeps/cpu")
@@ -244,6 +268,8 @@ def main(argv=None):
         print(f"skipped {skipped}" if skipped else f"wrote {os.path.join(out, figure.__name__[7:] + '.png')}")
     skipped = figure_budget(training_curves(runs), out)
     print(f"skipped {skipped}" if skipped else f"wrote {os.path.join(out, 'budget.png')}")
+    skipped = figure_controls(controls_rows(runs), out)
+    print(f"skipped {skipped}" if skipped else f"wrote {os.path.join(out, 'controls.png')}")
 
 
 if __name__ == "__main__":

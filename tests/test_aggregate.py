@@ -4,7 +4,7 @@ import json
 import pytest
 import scipy.stats
 
-from benchmarks import aggregate
+from benchmarks import aggregate, figures
 from common.evaluation import mean_ci
 
 
@@ -95,6 +95,8 @@ def test_controls_rows_average_environments_per_seed_then_across_seeds(tmp_path)
     assert list(rows)[-2:] == ["offline: 1-episode own context", "offline: 10-episode own context"]
     assert rows["offline: own context (3 episodes)"]["mean"] == pytest.approx(112.0)
     assert "| reach | F | 16 | offline: own - another's | 3 | 12.0 |" in aggregate.controls_markdown(aggregate.controls_rows(runs))
+    assert figures.figure_controls([], str(tmp_path)) == "controls: no finished controls runs"
+    assert figures.figure_controls(aggregate.controls_rows(runs), str(tmp_path)) is None and (tmp_path / "controls.png").stat().st_size > 0
 
 
 def test_exp12_st_runs_have_training_curves_beside_the_budget_runs(monkeypatch):
