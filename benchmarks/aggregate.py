@@ -332,7 +332,7 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
                 continue
             most = max(sweep)
             peak = max((x for x in sweep if x != most), key=lambda x: sum(sweep[x].values()) / len(sweep[x]))
-            parts.append(compare(f"{family} Exp 2 {method.upper()} collapses: return at {peak} steps (its best) - at {most}",
+            parts.append(compare(f"{family} Exp 2 {method.upper()} collapses: return at {peak} steps (its best before {most}) - at {most}",
                                  sweep[peak], sweep[most], paired=True))
             if method != "oracle":
                 parts.append(compare(f"{family} Exp 2 CLAW (one pass) - {method.upper()} at {most} steps", claw, sweep[most]))

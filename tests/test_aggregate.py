@@ -52,7 +52,7 @@ def test_exp2_collapse_is_paired_against_the_best_earlier_sweep_point():
     claim = verdicts(runs)["Gradient methods collapse with many offline steps, CLAW does not"]
     lines = {line.split(":")[0]: line for line in claim["evidence"]}
     dr = lines["walker Exp 2 DR collapses"]
-    assert "return at 10 steps (its best) - at 1000" in dr and "paired over 3 seeds" in dr and dr.endswith("supports")
+    assert "return at 10 steps (its best before 1000) - at 1000" in dr and "paired over 3 seeds" in dr and dr.endswith("supports")
     mean, half = mean_ci([150.0 + s for s in (1, 2, 3)])
     assert f"+{mean:.1f} [{mean - half:+.1f}, {mean + half:+.1f}]" in dr
     assert lines["walker Exp 2 ST collapses"].endswith("contradicts")  # ST improves with steps here
