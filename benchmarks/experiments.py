@@ -20,7 +20,7 @@ Experiment controls (issue 14) trains nothing: one run per Exp 1/2 family and se
 checkpoint with benchmarks/context_controls.py (own vs another environment's context, context sizes 1, 3, 10),
 writing controls.json and controls.md in its run directory, with each scale's Exp 1/2 evaluation settings
 (SCALES[scale]["controls"]). It waits for its CLAW run: the launcher starts it once that run is "done" (rerun
-the launcher after the training runs finish; `exp1 exp2 controls` lists the training runs first).
+the launcher later); a controls run whose checkpoint is ready starts ahead of the training runs still queued.
 
 Scales:
   paper  the paper's tables: families, sizes, ranks, budgets, 5 seeds (GPU work).
@@ -398,7 +398,9 @@ def pending_runs(runs: list[Run], root: str, cuda: bool = False) -> list[tuple[R
         resume = resume_args(run_dir)
         print(("resume " if resume else "run    ") + shlex.join(command + resume))
         pending.append((run, run_dir))
-    return pending
+    # evaluation-only runs whose checkpoint is ready start first: short, and they say whether the trained runs use
+    # their context while the long queue goes on (stable: the recipes' order otherwise)
+    return sorted(pending, key=lambda item: item[0].needs is None)
 
 
 def launch(runs: list[Run], root: str, workers: int | None, dry_run: bool, launcher: str = "local",

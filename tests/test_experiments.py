@@ -234,6 +234,10 @@ def test_controls_recipe_evaluates_the_exp12_claw_checkpoints_once_they_are_done
         else:
             assert pending == [(control, str(tmp_path / control.name))]
             assert out == "run    " + experiments.shlex.join(control.command(str(tmp_path / control.name))) + "\n"
+    pending = experiments.pending_runs(planned, str(tmp_path))  # a ready controls run is queued first
+    waiting = next(r for r in planned if r.method == "controls" and r is not control)
+    assert [r.name for r, _ in pending][0] == control.name and len(pending) == len(planned) - 2  # its CLAW run: done
+    assert f"wait (needs {waiting.needs} done) {waiting.name}" in capsys.readouterr().out
     experiments.main(["exp1", "controls", "--scale", "smoke", "--dry-run", "--root", str(tmp_path / "cli")])
     assert capsys.readouterr().out.count("wait (needs claw__reach__I__r2__s") == 2
 
