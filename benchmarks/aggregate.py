@@ -414,18 +414,13 @@ def main(argv=None):
     rows, curves, problems = summarize(runs)
     write_csv(os.path.join(cli.root, "summary.csv"), rows)
     write_csv(os.path.join(cli.root, "curves.csv"), curves)
-    training = training_curves(runs)
-    if training:
-        write_csv(os.path.join(cli.root, "training_curves.csv"), training)
-        with open(os.path.join(cli.root, "training_curves.md"), "w") as f:
-            f.write(training_markdown(training))
-        print(training_markdown(training))
-    controls = controls_rows(runs)
-    if controls:
-        write_csv(os.path.join(cli.root, "controls.csv"), controls)
-        with open(os.path.join(cli.root, "controls.md"), "w") as f:
-            f.write(controls_markdown(controls))
-        print(controls_markdown(controls))
+    for name, table_rows, to_markdown in (("training_curves", training_curves(runs), training_markdown),
+                                          ("controls", controls_rows(runs), controls_markdown)):
+        if table_rows:
+            write_csv(os.path.join(cli.root, f"{name}.csv"), table_rows)
+            with open(os.path.join(cli.root, f"{name}.md"), "w") as f:
+                f.write(to_markdown(table_rows))
+            print(to_markdown(table_rows))
     verdicts = claims_markdown(claims(seed_values(group_runs(runs)[0]), cli.exp4_size, SIZE_RANKS[cli.exp4_size]))
     with open(os.path.join(cli.root, "claims.md"), "w") as f:
         f.write(verdicts)
