@@ -7,7 +7,7 @@ exp2.png  return (and success) vs offline gradient steps (symlog x); CLAW's pass
 exp3.png  Cheetah/Walker return vs base parameter count (log x) for CLAW, FiLM, Concat; ratio to CLAW
 exp4.png  return vs LoRA rank, and vs adapter size as % of the world model, FiLM/Concat for reference
 exp5.png  Cheetah return: CLAW (joint) vs post-hoc hypernet
-controls.png  CLAW with its own vs another environment's context, and return vs context size (experiment controls)
+controls.png  CLAW's return with its own minus with another environment's context, and return vs context size (controls)
 budget.png  ST training curves (experiment budget, and Exp 1/2's ST runs) beside the random policy's return
 A figure whose runs are missing is skipped with a message. Bands and error bars are 95% t-CIs.
 """
@@ -237,11 +237,13 @@ def figure_controls(controls, out) -> str | None:
     fig, axes = plt.subplots(2, len(families), figsize=(4.5 * len(families), 7), squeeze=False)
     for (top, bottom), family in zip(axes.T, families):
         rows = [r for r in controls if r["family"] == family]
-        swap = [r for r in rows if ": own context (" in r["quantity"] or ": another environment's" in r["quantity"]]
-        top.bar([r["quantity"].replace(": ", "\n") for r in swap], [r["mean"] for r in swap], yerr=[_ci(r["ci95_seeds"]) for r in swap],
-                color=["tab:red" if "own" in r["quantity"] else "tab:gray" for r in swap], capsize=4)
-        top.tick_params(axis="x", labelsize="small")
-        top.set(title=f"{family}, seeds {rows[0]['seeds']}\nown vs another environment's context", ylabel="episode return")
+        drops = [r for r in rows if r["quantity"].endswith(": own - another's")]  # paired: same seeds and noise otherwise
+        own = {r["quantity"].split(":")[0]: r["mean"] for r in rows if ": own context (" in r["quantity"]}
+        top.bar([f"{r['quantity'].split(':')[0]}\n(own: {own[r['quantity'].split(':')[0]]:.0f})" for r in drops],
+                [r["mean"] for r in drops], yerr=[_ci(r["ci95_pairs"]) for r in drops], color=COLORS["claw"], capsize=4)
+        top.axhline(0, color="gray", linewidth=0.8)
+        top.set(title=f"{family}, seeds {rows[0]['seeds']}\nown minus another environment's context",
+                ylabel="return difference (95% CI, seed x env)")
         sizes = sorted((int(r["quantity"].split("offline: ")[1].split("-")[0]), r) for r in rows if "-episode own context" in r["quantity"])
         bottom.errorbar([k for k, _ in sizes], [r["mean"] for _, r in sizes], yerr=[_ci(r["ci95_seeds"]) for _, r in sizes],
                         color=COLORS["claw"], marker="o", capsize=4)
