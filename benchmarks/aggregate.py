@@ -23,6 +23,7 @@ import argparse
 import csv
 import glob
 import json
+import logging
 import math
 import os
 import sys
@@ -57,7 +58,15 @@ def load_runs(root: str) -> list[dict]:
         with open(path) as f:
             run = json.load(f)
         run["dir"] = os.path.dirname(path)
-        events = EventAccumulator(run["dir"], size_guidance={"scalars": 0}).Reload()
+        # a resumed run's writer starts with purge_step: TensorBoard drops the steps the killed process logged after
+        # its checkpoint, as intended, and warns "Detected out of order event.step" for each such file
+        tensorboard_logger = logging.getLogger("tensorboard")
+        level = tensorboard_logger.level
+        tensorboard_logger.setLevel(logging.ERROR)
+        try:
+            events = EventAccumulator(run["dir"], size_guidance={"scalars": 0}).Reload()
+        finally:
+            tensorboard_logger.setLevel(level)
         run["scalars"], run["duplicated"] = {}, []
         for tag in events.Tags()["scalars"]:
             steps = [(e.step, e.value) for e in events.Scalars(tag)]
