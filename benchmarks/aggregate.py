@@ -54,26 +54,26 @@ def eval_tag(phase: str, key: str) -> str:
 def load_runs(root: str) -> list[dict]:
     """run.json of every run under root, with its scalars as {tag: [(step, value), ...]}."""
     runs = []
-    for path in sorted(glob.glob(os.path.join(root, "*", "run.json"))):
-        with open(path) as f:
-            run = json.load(f)
-        run["dir"] = os.path.dirname(path)
-        # a resumed run's writer starts with purge_step: TensorBoard drops the steps the killed process logged after
-        # its checkpoint, as intended, and warns "Detected out of order event.step" for each such file
-        tensorboard_logger = logging.getLogger("tensorboard")
-        level = tensorboard_logger.level
-        tensorboard_logger.setLevel(logging.ERROR)
-        try:
+    # a resumed run's writer starts with purge_step: TensorBoard drops the steps the killed process logged after
+    # its checkpoint, as intended, and warns "Detected out of order event.step" for each such file
+    tensorboard_logger = logging.getLogger("tensorboard")
+    level = tensorboard_logger.level
+    tensorboard_logger.setLevel(logging.ERROR)
+    try:
+        for path in sorted(glob.glob(os.path.join(root, "*", "run.json"))):
+            with open(path) as f:
+                run = json.load(f)
+            run["dir"] = os.path.dirname(path)
             events = EventAccumulator(run["dir"], size_guidance={"scalars": 0}).Reload()
-        finally:
-            tensorboard_logger.setLevel(level)
-        run["scalars"], run["duplicated"] = {}, []
-        for tag in events.Tags()["scalars"]:
-            steps = [(e.step, e.value) for e in events.Scalars(tag)]
-            if len({step for step, _ in steps}) < len(steps):  # e.g. a resume logged without purge_step
-                run["duplicated"].append(tag)
-            run["scalars"][tag] = sorted(dict(steps).items())  # the last value written at a step wins, as in TensorBoard
-        runs.append(run)
+            run["scalars"], run["duplicated"] = {}, []
+            for tag in events.Tags()["scalars"]:
+                steps = [(e.step, e.value) for e in events.Scalars(tag)]
+                if len({step for step, _ in steps}) < len(steps):  # e.g. a resume logged without purge_step
+                    run["duplicated"].append(tag)
+                run["scalars"][tag] = sorted(dict(steps).items())  # the last value written at a step wins, as in TensorBoard
+            runs.append(run)
+    finally:
+        tensorboard_logger.setLevel(level)
     return runs
 
 
@@ -127,11 +127,8 @@ def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str,
     groups, problems = group_runs(runs)
     rows, curves = [], []
     for key, members in sorted(groups.items(), key=lambda kv: tuple(str(k) for k in kv[0])):
-        per_metric = defaultdict(list)
-        for run in members:
-            for metric, value in run_metrics(run).items():
-                per_metric[metric].append(value)
-        for (metric, x), values in sorted(per_metric.items(), key=lambda kv: (kv[0][0], kv[0][1] or 0)):
+        for (metric, x), by_seed in sorted(_by_metric(members).items(), key=lambda kv: (kv[0][0], kv[0][1] or 0)):
+            values = list(by_seed.values())
             mean, half = mean_ci(values)
             rows.append({**dict(zip(GROUP_KEYS, key)), "metric": metric, "x": x, "n": len(values), "mean": mean, "ci95": half,
                          "seeds": ",".join(str(r["seed"]) for r in members)})
@@ -217,29 +214,30 @@ def controls_rows(runs: list[dict]) -> list[dict]:
                 groups[(run["family"], run["size"], run["rank"])].append((run["seed"], json.load(f)))
     rows = []
     for (family, size, rank), members in sorted(groups.items()):
-        quantities = defaultdict(lambda: ([], []))  # name -> (per-seed means, per-(seed, env) values)
+        # (quantity, protocol, arm, context episodes) -> (per-seed means, per-(seed, env) values)
+        quantities = defaultdict(lambda: ([], []))
 
-        def add(name, per_env: dict):
+        def add(key: tuple, per_env: dict):
             values = [v for v in per_env.values() if not math.isnan(v)]  # online: an environment without a finished episode
             if values:
-                quantities[name][0].append(sum(values) / len(values))
-                quantities[name][1].extend(values)
+                quantities[key][0].append(sum(values) / len(values))
+                quantities[key][1].extend(values)
 
         for _, result in members:
+            k = result["context_episodes"]
             for protocol in result["swap"]["own"]:
                 own, swapped = result["swap"]["own"][protocol], result["swap"]["swapped"][protocol]
-                k = result["context_episodes"]
-                add(f"{protocol}: own context ({k} episodes)", own)
-                add(f"{protocol}: another environment's context", swapped)
-                add(f"{protocol}: own - another's", {e: own[e] - swapped[e] for e in own})
+                add((f"{protocol}: own context ({k} episodes)", protocol, "own", k), own)
+                add((f"{protocol}: another environment's context", protocol, "another", k), swapped)
+                add((f"{protocol}: own - another's", protocol, "own - another", k), {e: own[e] - swapped[e] for e in own})
             for episodes, per_env in sorted(result["size"].items(), key=lambda kv: int(kv[0])):
-                add(f"offline: {episodes}-episode own context", per_env)
-        for name, (per_seed, per_pair) in quantities.items():
+                add((f"offline: {episodes}-episode own context", "offline", "size", int(episodes)), per_env)
+        for (name, protocol, arm, episodes), (per_seed, per_pair) in quantities.items():
             mean, half = mean_ci(per_seed)
             _, pair_half = mean_ci(per_pair)
-            rows.append({"family": family, "size": size, "rank": rank, "quantity": name, "n_seeds": len(per_seed),
-                         "mean": mean, "ci95_seeds": half, "n_pairs": len(per_pair), "ci95_pairs": pair_half,
-                         "seeds": ",".join(str(seed) for seed, _ in members)})
+            rows.append({"family": family, "size": size, "rank": rank, "quantity": name, "protocol": protocol, "arm": arm,
+                         "context_episodes": episodes, "n_seeds": len(per_seed), "mean": mean, "ci95_seeds": half,
+                         "n_pairs": len(per_pair), "ci95_pairs": pair_half, "seeds": ",".join(str(seed) for seed, _ in members)})
     return rows
 
 
@@ -327,9 +325,8 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
         parts += [compare(f"{family} Exp 1 return, CLAW - DR", claw, runs_of("dr", family, "online_return")),
                   compare(f"{family} Exp 1 return, CLAW - ST", claw, runs_of("st", family, "online_return")),
                   compare(f"{family} Exp 1 return, CLAW - Oracle (tracks)", claw, oracle, track_of=oracle)]
-    if not exp12_families:
-        parts = [{"label": "exp12", "verdict": "missing", "n": 0, "text": "no finished DR, ST or Oracle run"}]
-    results.append(("CLAW tracks the oracle and beats DR and ST online (Exp 1)", parts))
+    no_exp12 = [{"label": "exp12", "verdict": "missing", "n": 0, "text": "no finished DR, ST or Oracle run"}]
+    results.append(("CLAW tracks the oracle and beats DR and ST online (Exp 1)", parts or no_exp12))
     parts = []
     for family in exp12_families:
         claw = runs_of("claw", family, "offline_return", 0)
@@ -345,7 +342,7 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
                                  sweep[peak], sweep[most], paired=True))
             if method != "oracle":
                 parts.append(compare(f"{family} Exp 2 CLAW (one pass) - {method.upper()} at {most} steps", claw, sweep[most]))
-    results.append(("Gradient methods collapse with many offline steps, CLAW does not (Exp 2)", parts or results[0][1]))
+    results.append(("Gradient methods collapse with many offline steps, CLAW does not (Exp 2)", parts or no_exp12))
     claw = runs_of("claw", "cheetah_walker", "online_return", size=exp4_size, rank=exp4_rank)
     results.append((f"CLAW beats FiLM and Concat at mid sizes (Exp 3/4, size {exp4_size})",
                     [compare(f"cheetah_walker return, CLAW r{exp4_rank} - {m}", claw, runs_of(m, "cheetah_walker", "online_return", size=exp4_size))

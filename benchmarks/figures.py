@@ -237,18 +237,19 @@ def figure_controls(controls, out) -> str | None:
     fig, axes = plt.subplots(2, len(families), figsize=(4.5 * len(families), 7), squeeze=False)
     for (top, bottom), family in zip(axes.T, families):
         rows = [r for r in controls if r["family"] == family]
-        drops = [r for r in rows if r["quantity"].endswith(": own - another's")]  # paired: same seeds and noise otherwise
-        own = {r["quantity"].split(":")[0]: r["mean"] for r in rows if ": own context (" in r["quantity"]}
-        top.bar([f"{r['quantity'].split(':')[0]}\n(own: {own[r['quantity'].split(':')[0]]:.0f})" for r in drops],
+        drops = [r for r in rows if r["arm"] == "own - another"]  # paired: same seeds and noise otherwise
+        own = {r["protocol"]: r["mean"] for r in rows if r["arm"] == "own"}
+        top.bar([f"{r['protocol']}\n(own: {own[r['protocol']]:.0f})" for r in drops],
                 [r["mean"] for r in drops], yerr=[_ci(r["ci95_pairs"]) for r in drops], color=COLORS["claw"], capsize=4)
         top.axhline(0, color="gray", linewidth=0.8)
         top.set(title=f"{family}, seeds {rows[0]['seeds']}\nown minus another environment's context",
                 ylabel="return difference (95% CI, seed x env)")
-        sizes = sorted((int(r["quantity"].split("offline: ")[1].split("-")[0]), r) for r in rows if "-episode own context" in r["quantity"])
-        bottom.errorbar([k for k, _ in sizes], [r["mean"] for _, r in sizes], yerr=[_ci(r["ci95_seeds"]) for _, r in sizes],
+        sizes = sorted((r for r in rows if r["arm"] == "size"), key=lambda r: r["context_episodes"])
+        episodes = [r["context_episodes"] for r in sizes]
+        bottom.errorbar(episodes, [r["mean"] for r in sizes], yerr=[_ci(r["ci95_seeds"]) for r in sizes],
                         color=COLORS["claw"], marker="o", capsize=4)
         bottom.set(xscale="log", xlabel="pi_con episodes in the context", ylabel="offline episode return", title=f"{family}: context size")
-        bottom.set_xticks([k for k, _ in sizes], [str(k) for k, _ in sizes])
+        bottom.set_xticks(episodes, [str(k) for k in episodes])
     fig.tight_layout()
     fig.savefig(os.path.join(out, "controls.png"), dpi=120)
     return None
