@@ -154,15 +154,16 @@ def recipe(experiment: str, scale: str) -> list[Run]:
     s = SCALES[scale]
     runs = []
     if experiment in ("exp1", "exp2"):
-        for family in s["exp12_families"]:
-            for method in ("claw", "dr", "st", "oracle"):
-                for seed in s["seeds"]:
+        # seed-major: a sweep cut short holds every method and family at n seeds before any at n + 1
+        for seed in s["seeds"]:
+            for family in s["exp12_families"]:
+                for method in ("claw", "dr", "st", "oracle"):
                     extra = s.get("exp12", []) if method != "claw" else _without_sweep(s.get("exp12", []))
                     extra = extra + s.get("exp12_family", {}).get(family, [])
                     runs.append(Run(method, family, s["exp12_size"], s["exp12_rank"], seed, s["common"] + extra))
     elif experiment == "controls":  # evaluation only: the Exp 1/2 CLAW runs' checkpoints
-        for family in s["exp12_families"]:
-            for seed in s["seeds"]:
+        for seed in s["seeds"]:
+            for family in s["exp12_families"]:
                 trained = Run("claw", family, s["exp12_size"], s["exp12_rank"], seed)
                 runs.append(Run("controls", family, trained.size, trained.rank, seed,
                                 s["controls"] + s.get("controls_family", {}).get(family, []), needs=trained.name))

@@ -26,6 +26,7 @@ def test_paper_recipes_follow_the_tables():
     exp12 = experiments.plan_runs(["exp1", "exp2"], "paper")
     assert len(exp12) == 4 * 4 * 5  # families x methods x seeds, shared by both experiments
     assert all(r.experiments == ["exp1", "exp2"] and r.size == "A" and r.rank == 16 for r in exp12)
+    assert [r.seed for r in exp12[:16]] == [1] * 16  # seed-major: all families and methods at seed 1 first
     exp3 = experiments.recipe("exp3", "paper")
     assert {(r.size, r.rank) for r in exp3 if r.method == "claw"} == set(experiments.SIZE_RANKS.items())
     # Exp 3's size-F CLAW runs are Exp 4's rank-8 and Exp 5's CLAW runs: planned once
