@@ -398,10 +398,12 @@ def pending_runs(runs: list[Run], root: str, cuda: bool = False) -> list[tuple[R
             continue
         resume = resume_args(run_dir)
         print(("resume " if resume else "run    ") + shlex.join(command + resume))
-        pending.append((run, run_dir))
+        pending.append((run, run_dir, bool(resume)))
     # evaluation-only runs whose checkpoint is ready start first: short, and they say whether the trained runs use
-    # their context while the long queue goes on (stable: the recipes' order otherwise)
-    return sorted(pending, key=lambda item: item[0].needs is None)
+    # their context while the long queue goes on; then interrupted runs, so that a restart finishes what it cut
+    # before it opens new runs (stable: the recipes' order otherwise)
+    pending.sort(key=lambda item: (item[0].needs is None, not item[2]))
+    return [(run, run_dir) for run, run_dir, _ in pending]
 
 
 def launch(runs: list[Run], root: str, workers: int | None, dry_run: bool, launcher: str = "local",

@@ -85,6 +85,14 @@ def test_restarted_launcher_skips_live_runs_resumes_dead_ones_and_reports_change
     assert not experiments.run_is_live(str(tmp_path / live.name))
 
 
+def test_interrupted_runs_resume_before_new_runs_start(tmp_path):
+    first, second, third = experiments.plan_runs(["exp1"], "smoke")[:3]
+    (tmp_path / third.name).mkdir()
+    (tmp_path / third.name / "checkpoint.pt").write_bytes(b"")  # cut by the previous launcher's stop
+    pending = experiments.pending_runs([first, second, third], str(tmp_path))
+    assert [run for run, _ in pending] == [third, first, second]
+
+
 def test_run_job_resumes_a_dead_run_holding_its_lock(tmp_path, monkeypatch):
     run = experiments.plan_runs(["exp1"], "smoke")[0]
     run_dir = tmp_path / run.name
