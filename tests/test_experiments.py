@@ -315,3 +315,22 @@ def test_random_policy_return_is_a_real_rollout():
     first, again = aggregate.random_policy_return("reach", 0, episodes=2), aggregate.random_policy_return("reach", 0, episodes=2)
     assert first == again and first != 0.0
     assert aggregate.random_policy_return("reach", 0, episodes=2, seed=1) != first
+
+
+def test_context_norm_probe_normalises_u_con_only_while_it_runs(monkeypatch):
+    import claw_tdmpc2 as claw
+    from benchmarks import context_norm_probe
+
+    def fake_main(args):  # what the patched script's hypernetwork would embed
+        encoder = claw.ContextEncoder(10, args)
+        seen.append((args.context_dim, encoder(torch.randn(50, 10) * 5 + 3)))
+
+    seen = []
+    monkeypatch.setattr(claw, "main", fake_main)
+    context_norm_probe.main(["train", "--context-dim", "16"])
+    (dim, u_con), = seen
+    assert dim == 16 and float(u_con.mean()) == pytest.approx(0.0, abs=1e-5)
+    assert float(u_con.var(unbiased=False)) == pytest.approx(1.0, rel=1e-3)
+    assert claw.ContextEncoder.forward is context_norm_probe.plain_forward  # restored for the rest of the process
+    with pytest.raises(SystemExit, match="usage"):
+        context_norm_probe.main(["bogus"])
