@@ -102,7 +102,8 @@ SCALES = {
         # the Exp 1/2 evaluation of each family; the compiled planner: ~1.7x faster evaluation at size F
         "controls": ["--context-episodes", "1", "3", "10", "--compile", "on"],
         "controls_family": {"reach": ["--eval-episodes", "10", "--online-eval-steps", "2000"],
-                            "walker": ["--eval-episodes", "2", "--online-eval-steps", "1000"]},
+                            # strengths are sorted: offset 10 of 20 swaps in a strength ~0.5 away, not a neighbour 0.05 away
+                            "walker": ["--eval-episodes", "2", "--online-eval-steps", "1000", "--swap-offset", "10"]},
     },
     "smoke": {
         "seeds": (1, 2),

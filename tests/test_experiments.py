@@ -228,6 +228,8 @@ def test_controls_recipe_evaluates_the_exp12_claw_checkpoints_once_they_are_done
         assert command[2] == str(tmp_path / trained.name / "checkpoint.pt")
         assert command[-4:] == ["--json", str(run_dir / "controls.json"), "--out", str(run_dir / "controls.md")]
         assert command[command.index("--eval-episodes") + 1] == {"reach": "10", "walker": "2"}[run.family]
+        if run.family == "walker":  # a distant strength, not the neighbouring one
+            assert command[command.index("--swap-offset") + 1] == "10"
         assert "--compile" in command and "--seed" not in command and "--no-cuda" not in command  # the checkpoint's own
     planned = experiments.plan_runs(["controls", "exp1"], "smoke")  # training first, whatever the order asked
     assert [r.method for r in planned][-2:] == ["controls", "controls"] and "controls" not in [r.method for r in planned[:-2]]
