@@ -424,38 +424,53 @@ def launch(runs: list[Run], root: str, workers: int | None, dry_run: bool, launc
     env = {"OMP_NUM_THREADS": threads, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "disable")}
     if launcher == "slurm":
         return submit_slurm(pending, root, env, cuda, workers, slurm)
-    return run_local(pending, env, workers or 1)
+    started = {run.name for run, _ in pending}
+    waiting = [(run, os.path.join(root, run.name)) for run in runs if run.needs and run.name not in started
+               and read_status(os.path.join(root, run.name)).get("status") != "done"]
+    return run_local(pending, env, workers or 1, waiting)
 
 
-def run_local(pending: list[tuple[Run, str]], env: dict, workers: int) -> int:
-    """Runs on this machine, `workers` at a time.
+def run_local(pending: list[tuple[Run, str]], env: dict, workers: int, waiting: list[tuple[Run, str]] = ()) -> int:
+    """Runs on this machine, `workers` at a time; a waiting run (Run.needs) joins the front of the queue as soon
+    as the run it needs is done, so one launcher call runs the evaluations of the checkpoints it trains.
 
     Threads over RunJob rather than submitit's LocalExecutor: that one starts every job at once (no
     cap on parallel runs) and kills each after its timeout_min; DebugExecutor runs one at a time.
     The threads only wait on their scripts' processes.
     """
-    jobs = [RunJob(die_with_launcher=True) for _ in pending]
+    queue, waiting, running = list(pending), list(waiting), {}
     _STOP.clear()
 
     def interrupt(signum, frame):  # end the scripts too, so that no run outlives its launcher unrecorded
         _STOP.set()
-        for job in jobs:
+        for _, job in list(running.values()):
             if job.process is not None and job.process.poll() is None:
                 job.process.terminate()
 
     handlers = {}
     if threading.current_thread() is threading.main_thread():
         handlers = {sig: signal.signal(sig, interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
-    failed = 0
+    failed, start = 0, time.time()
     try:
         with concurrent.futures.ThreadPoolExecutor(workers) as pool:
-            futures = {pool.submit(job, run, run_dir, env): run for job, (run, run_dir) in zip(jobs, pending)}
-            start = time.time()
-            for future in concurrent.futures.as_completed(futures):
-                status = future.result()
-                failed += status == "failed"
-                label = "skip (running)" if status == "busy" else f"{status:6s}"
-                print(f"{label} {futures[future].name} ({time.time() - start:.0f} s into the sweep)", flush=True)
+            while running or (queue and not _STOP.is_set()):
+                while queue and len(running) < workers and not _STOP.is_set():
+                    run, run_dir = queue.pop(0)
+                    job = RunJob(die_with_launcher=True)
+                    running[pool.submit(job, run, run_dir, env)] = (run, job)
+                done, _ = concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
+                for future in done:
+                    run, _ = running.pop(future)
+                    status = future.result()
+                    failed += status == "failed"
+                    label = "skip (running)" if status == "busy" else f"{status:6s}"
+                    print(f"{label} {run.name} ({time.time() - start:.0f} s into the sweep)", flush=True)
+                ready = [item for item in waiting
+                         if read_status(os.path.join(os.path.dirname(item[1]), item[0].needs)).get("status") == "done"]
+                for run, _ in ready:
+                    print(f"ready        {run.name} ({run.needs} is done)", flush=True)
+                waiting = [item for item in waiting if item not in ready]
+                queue[:0] = ready
     finally:
         for sig, handler in handlers.items():
             signal.signal(sig, handler)

@@ -192,9 +192,9 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     control = experiments.recipe("controls", "smoke")[0]  # evaluates runs[0]'s checkpoint: waits for it
     assert control.needs == runs[0].name
     assert experiments.launch(runs + [control], str(tmp_path), workers=2, dry_run=False) == 0
-    assert f"wait (needs {runs[0].name} done) {control.name}" in capsys.readouterr().out
-    assert not (tmp_path / control.name).exists()
-    assert all(json.load(open(tmp_path / r.name / "run.json"))["status"] == "done" for r in runs)
+    out = capsys.readouterr().out  # the control waits, then runs in the same call once its checkpoint is done
+    assert f"wait (needs {runs[0].name} done) {control.name}" in out and f"ready        {control.name}" in out
+    assert all(json.load(open(tmp_path / r.name / "run.json"))["status"] == "done" for r in runs + [control])
     aggregate.main([str(tmp_path)])
     summary = (tmp_path / "summary.md").read_text()
     assert "| claw | reach | I | 2 | online_return |" in summary and "| offline_return | 0 | 2 |" in summary
@@ -202,11 +202,11 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     assert figures.figure_exp1(rows, curves, str(tmp_path)) == "exp1: no DR/ST/Oracle runs"
     # the identifiability diagnostic reads a sweep's CLAW checkpoint
     inspect_adapters.main([str(tmp_path / runs[0].name / "checkpoint.pt"), "--episodes", "1"])
-    # the launcher skips finished runs on a second call, and starts the control that waited for them
-    assert experiments.launch(runs + [control], str(tmp_path), workers=1, dry_run=False) == 0
     out = capsys.readouterr().out
     assert "delta phi (world model)" in out and "gradient norms of one world-model loss" in out
-    assert f"skip (done)  {runs[0].name}" in out and f"done   {control.name}" in out
+    assert experiments.launch(runs + [control], str(tmp_path), workers=1, dry_run=False) == 0  # a second call: nothing left
+    out = capsys.readouterr().out
+    assert f"skip (done)  {runs[0].name}" in out and f"skip (done)  {control.name}" in out and "ready" not in out
     result = json.load(open(tmp_path / control.name / "controls.json"))
     assert sorted(result["size"]) == ["1", "2"] and sorted(result["swap"]["own"]["offline"]) == [str(j) for j in range(6)]
     assert "## Context size" in (tmp_path / control.name / "controls.md").read_text()
