@@ -13,6 +13,7 @@ steps, i.e. planner calls; with action repeat 2 that is half the simulator steps
 from __future__ import annotations
 
 import copy
+import hashlib
 import math
 import os
 import random
@@ -877,15 +878,51 @@ def random_prefill(envs: dict, replay, total: int) -> int:
 # ---------------------------------------------------------------------------------------------
 # Persistence
 # ---------------------------------------------------------------------------------------------
+def global_rng_state() -> dict:
+    """Python's, NumPy's and torch's generators: restored, a resumed run draws what an uninterrupted one would."""
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None}
+
+
+def set_global_rng_state(state: dict) -> None:
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+    if state["cuda"] is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def weights_digest(model) -> str:
+    """Identifies the weights an evaluation belongs to: progress saved for other weights is not taken up."""
+    digest = hashlib.sha256()
+    for tensor in model.state_dict().values():
+        digest.update(tensor.detach().cpu().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def save_evaluation_progress(path: str, results: dict, model) -> None:
+    """After each environment: an evaluation killed later goes on from the next one (walker's take minutes each)."""
+    torch.save({"results": results, "rng": global_rng_state(), "weights": weights_digest(model)}, path + ".tmp")
+    os.replace(path + ".tmp", path)
+
+
+def load_evaluation_progress(path: str, model) -> dict:
+    progress = torch.load(path, map_location="cpu", weights_only=False)
+    if progress["weights"] != weights_digest(model):
+        print(f"ignoring {path}: saved by an evaluation of other weights", flush=True)
+        return {"online": {}, "offline": {}}
+    set_global_rng_state(progress["rng"])
+    print(f"resumed the evaluation from {path}: {len(progress['results']['online'])} environments done", flush=True)
+    return progress["results"]
+
+
 def save_checkpoint(path, global_step, train_pass, burst_left, model, hypernet, optimizers, scale, replay, pool, args: Args, envs=()):
     state = {
         "global_step": global_step, "burst_left": burst_left, "pass": train_pass, "args": vars(args), "model": model.state_dict(), "hypernet": hypernet.state_dict(),
         "optimizers": [opt.state_dict() for opt in optimizers], "scale": scale.value.cpu(),
         "replay": replay.state_dict() if replay is not None else None, "contexts": (pool.episodes, pool.collected),
         "method": os.path.basename(__file__), "dims": (model.obs_dim, model.act_dim),  # checked by read_checkpoint
-        "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
-                "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
-                "envs": [rng_state(env) for env in envs]},  # the rollout environments: their next resets
+        "rng": {**global_rng_state(), "envs": [rng_state(env) for env in envs]},  # envs: the rollout environments' next resets
     }
     torch.save(state, path + ".tmp")
     os.replace(path + ".tmp", path)  # atomic: a kill mid-save never leaves a truncated checkpoint
@@ -906,18 +943,14 @@ def load_checkpoint(path, model, hypernet, optimizers=None, scale=None, replay=N
     if replay is not None and state["replay"] is not None:
         replay.load_state_dict(state["replay"])
     if restore_rng:
-        random.setstate(state["rng"]["python"])
-        np.random.set_state(state["rng"]["numpy"])
-        torch.set_rng_state(state["rng"]["torch"])
-        if state["rng"]["cuda"] is not None and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(state["rng"]["cuda"])
+        set_global_rng_state(state["rng"])
     return state
 
 
 # ---------------------------------------------------------------------------------------------
 # Evaluation: the shared protocols with CLAW's adapt (one hypernet pass) and act (MPPI)
 # ---------------------------------------------------------------------------------------------
-def evaluate(model, hypernet, layout, discount, writer, device, args: Args) -> dict:
+def evaluate(model, hypernet, layout, discount, writer, device, args: Args, progress_path: str | None = None) -> dict:
     model.eval()
     current = {"weights": model.base_weights(), "mean": None}
 
@@ -931,7 +964,9 @@ def evaluate(model, hypernet, layout, discount, writer, device, args: Args) -> d
         return action.cpu().numpy()
 
     results = {"online": {}, "offline": {}}
-    for env_id in [CHEETAH]:  # paper Exp 5 evaluates on cheetah only
+    if progress_path and os.path.exists(progress_path):  # an interrupted evaluation: skip the environments it finished
+        results = load_evaluation_progress(progress_path, model)
+    for env_id in [CHEETAH][len(results["online"]):]:  # paper Exp 5 evaluates on cheetah only
         env = make_env(args.family, env_id, seed=args.seed + 10_000 + env_id)
         context = collect_episodes(env, args.context_episodes, seed=args.seed + 20_000 + env_id)
         online = online_adaptation(env, context, adapt, act, args.online_eval_steps, seed=args.seed + 30_000 + env_id, desc=f"eval env {env_id} online")
@@ -945,6 +980,8 @@ def evaluate(model, hypernet, layout, discount, writer, device, args: Args) -> d
         results["online"][env_id], results["offline"][env_id] = online, offline
         print(f"eval env {env_id}: online last-episode return {online[-1]['return'] if online else float('nan'):.1f}, "
               f"offline return {offline_return:.1f}", flush=True)
+        if progress_path:
+            save_evaluation_progress(progress_path, results, model)
     # family averages: every environment has episodes of equal length, so episode k ends at the same step
     num_episodes = min(len(r) for r in results["online"].values())
     for k in range(num_episodes):
@@ -958,6 +995,8 @@ def evaluate(model, hypernet, layout, discount, writer, device, args: Args) -> d
     writer.add_scalar("eval/offline/success", np.mean([r["success"] for recs in results["offline"].values() for r in recs]), 0)
     print(f"eval offline: return {mean:.1f} +- {ci:.1f} (95% t-CI across environments)", flush=True)
     writer.flush()
+    if progress_path and os.path.exists(progress_path):  # complete: another evaluation of these weights starts afresh
+        os.remove(progress_path)
     return results
 
 
@@ -1109,7 +1148,7 @@ def main(args: Args):
     save()
     print(f"saved {checkpoint_path}", flush=True)
     if args.evaluate_after_training:
-        evaluate(model, hypernet, layout, discount, writer, device, args)
+        evaluate(model, hypernet, layout, discount, writer, device, args, progress_path=os.path.join(run_dir, "evaluation_progress.pt"))
     writer.close()
     if args.track:
         wandb.finish()

@@ -246,10 +246,11 @@ EXACT = {
         ("update", lambda f: raise_on_call(f, 3), 600),  # in the burst: the checkpoint after the prefill
         ("progress_text", lambda f: raise_at_step(f, 620), 600),  # after the burst, before an episode ends
         ("progress_text", lambda f: raise_at_step(f, 760), 700),  # after a periodic checkpoint at an episode end
-        ("online_adaptation", lambda f: raise_on_call(f, 2), 800)]),  # in the final evaluation
+        ("online_adaptation", lambda f: raise_on_call(f, 3), 800)]),  # in the final evaluation, goal 2
     "dr": (dr, dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100, offline_adapt_steps=(0, 2)), [
         ("progress_text", lambda f: raise_at_step(f, 760), 700),
-        ("offline_adaptation", lambda f: raise_on_call(f, 1), 800)]),
+        ("offline_adaptation", lambda f: raise_on_call(f, 1), 800),  # in goal 0's evaluation: nothing to keep
+        ("offline_adaptation", lambda f: raise_on_call(f, 4), 800)]),  # in goal 1's second sweep point
     "posthoc": (posthoc, dict(family="cheetah_walker", rank=2, total_timesteps=1100, log_every=25, checkpoint_every=550), [
         ("collect_episodes", lambda f: raise_on_call(f, 1), 550),  # pass 2 begins: pass 1's end is an episode end
         ("progress_text", lambda f: raise_at_step(f, 1075), 1050)]),  # in pass 2: the checkpoint after its burst
@@ -285,4 +286,25 @@ def test_killed_and_resumed_runs_equal_uninterrupted_ones(name, tmp_path, capsys
     for part in ("model", "hypernet"):
         for key, value in whole.get(part, {}).items():
             assert torch.equal(value, resumed[part][key]), (part, key)
-    assert eval_lines(out) == eval_lines(whole_out)
+    # an evaluation killed after some environments takes them from its progress file; the rest and the
+    # family results equal the uninterrupted run's
+    finished = {"claw": 2, "dr": 1, "posthoc": 0}[name]
+    assert (f"resumed the evaluation from {tmp_path / 'killed' / 'evaluation_progress.pt'}: {finished} environments done" in out) == (finished > 0)
+    assert eval_lines(out) == [line for line in eval_lines(whole_out) if not any(line.startswith(f"eval env {e}:") for e in range(finished))]
+    assert not os.path.exists(tmp_path / "killed" / "evaluation_progress.pt")
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=lambda s: s.__name__)
+def test_evaluation_progress_is_taken_up_only_for_the_weights_it_was_saved_with(script, tmp_path, capsys):
+    model, path = torch.nn.Linear(3, 2), str(tmp_path / "evaluation_progress.pt")
+    results = {"online": {0: [{"step": 100, "return": 1.0, "success": 0.0}]}, "offline": {0: {0: []}}}
+    torch.manual_seed(7)
+    script.save_evaluation_progress(path, results, model)
+    expected_draw = torch.rand(3)
+    torch.manual_seed(8)
+    assert script.load_evaluation_progress(path, model) == results
+    assert torch.equal(torch.rand(3), expected_draw)  # the generators continue where the evaluation stopped
+    with torch.no_grad():
+        model.weight[0, 0] += 1e-6
+    assert script.load_evaluation_progress(path, model) == {"online": {}, "offline": {}}
+    assert "saved by an evaluation of other weights" in capsys.readouterr().out
