@@ -319,20 +319,32 @@ def test_random_policy_return_is_a_real_rollout():
     assert aggregate.random_policy_return("reach", 0, episodes=2, seed=1) != first
 
 
-def test_context_norm_probe_normalises_u_con_only_while_it_runs(monkeypatch):
+def test_context_probes_patch_claw_only_while_they_run(monkeypatch):
     import claw_tdmpc2 as claw
-    from benchmarks import context_norm_probe
+    from benchmarks import context_probes
+    from common.envs import make_env
 
-    def fake_main(args):  # what the patched script's hypernetwork would embed
+    plain_forward, plain_collect = claw.ContextEncoder.forward, claw.collect_episodes
+
+    def fake_main(args):  # what the patched script's hypernetwork would embed, and the contexts it would see
         encoder = claw.ContextEncoder(10, args)
-        seen.append((args.context_dim, encoder(torch.randn(50, 10) * 5 + 3)))
+        env = make_env("reach", 2)
+        context = claw.collect_episodes(env, 1, seed=0)
+        seen.append((args.context_dim, encoder(torch.randn(50, 10) * 5 + 3), env.unwrapped.goal, context))
 
     seen = []
     monkeypatch.setattr(claw, "main", fake_main)
-    context_norm_probe.main(["train", "--context-dim", "16"])
-    (dim, u_con), = seen
+    context_probes.main(["unorm", "train", "--context-dim", "16"])
+    context_probes.main(["goal", "train", "--context-dim", "16"])
+    (dim, u_con, _, plain_context), (_, u_con_goal, goal, goal_context) = seen
     assert dim == 16 and float(u_con.mean()) == pytest.approx(0.0, abs=1e-5)
     assert float(u_con.var(unbiased=False)) == pytest.approx(1.0, rel=1e-3)
-    assert claw.ContextEncoder.forward is context_norm_probe.plain_forward  # restored for the rest of the process
+    assert float(u_con_goal.var(unbiased=False)) != pytest.approx(1.0, rel=1e-3)  # the goal probe leaves u_con alone
+    assert not plain_context["obs"][:, 36:39].any()  # the unorm probe leaves the contexts alone
+    assert np.allclose(goal_context["next_obs"][:, 36:39], goal) and np.allclose(goal_context["obs"][:, 36:39], goal)
+    assert np.array_equal(np.delete(goal_context["obs"], np.s_[36:39], 1), np.delete(plain_context["obs"], np.s_[36:39], 1))
+    assert (claw.ContextEncoder.forward, claw.collect_episodes) == (plain_forward, plain_collect)  # restored afterwards
+    with pytest.raises(SystemExit, match="Meta-World family"):
+        context_probes.goal_revealing_collect(make_env("walker", 0), 1, seed=0)
     with pytest.raises(SystemExit, match="usage"):
-        context_norm_probe.main(["bogus"])
+        context_probes.main(["goal", "bogus"])
