@@ -131,6 +131,9 @@ class Args:
     """agent steps between pool refreshes, each replacing one environment's oldest episode (in turn); 0: never"""
     context_standardize: bool = True
     """standardise context features by per-feature statistics of the initial pool (kept in the checkpoint)"""
+    decoder_coef: float = 0.0
+    """weight of a reward decoder on u_con, a departure from the paper (0: none, the paper's method): an MLP predicts the
+    update batch's symlog rewards from (s, a, s') and u_con, a direct identification signal for the context encoder"""
 
     # evaluation (paper Exp 1 / Exp 2)
 
@@ -188,7 +191,7 @@ def validate_args(args: Args) -> tuple[int, int, int]:
         raise SystemExit("error: --eval-only and --resume exclude each other")
     check_counts(args, ("total_timesteps", "batch_size", "horizon", "iterations", "num_samples", "log_every", "checkpoint_every",
                         "checkpoint_minutes", "threads", "rank", "context_episodes", "eval_episodes", "context_dim", "embed_hidden",
-                        "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps"))
+                        "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps", "decoder_coef"))
     if args.num_bins < 2 or args.vmin >= args.vmax:
         raise SystemExit(f"error: need --num-bins >= 2 and --vmin < --vmax, got {args.num_bins}, {args.vmin}, {args.vmax}")
     budget = resolve_budget(args)  # (total agent steps, --seed-steps, prefill agent steps)
@@ -433,6 +436,8 @@ class ContextEncoder(nn.Module):
         self.register_buffer("feature_std", torch.ones(transition_dim))
         self.embed = nn.Sequential(hidden_mlp(transition_dim, args.embed_hidden, args.embed_hidden), nn.Mish())
         self.context = hidden_mlp(args.embed_hidden, args.embed_hidden, args.context_dim)
+        # --decoder-coef: r from (s, a, s') and u_con; only u_con tells the environments' rewards apart
+        self.reward_decoder = hidden_mlp(transition_dim + args.context_dim, args.embed_hidden, 1) if args.decoder_coef > 0 else None
 
     def set_statistics(self, transitions):
         """Fix the per-feature standardisation; constant features (std ~0) are only centred."""
@@ -442,6 +447,13 @@ class ContextEncoder(nn.Module):
 
     def forward(self, transitions):  # [N, transition_dim] -> [context_dim]
         return self.context(self.embed((transitions - self.feature_mean) / self.feature_std).mean(0))
+
+    def decoder_loss(self, u_con, obs, action, reward):
+        """MSE of the decoded symlog(r) of replay transitions [H, B] of u_con's environment (--decoder-coef)."""
+        rows = torch.cat([obs[:-1], action, torch.zeros_like(reward), obs[1:]], -1)  # the context's (s, a, r, s') layout
+        rows = (rows - self.feature_mean) / self.feature_std
+        rows[..., obs.shape[-1] + action.shape[-1]] = 0.0  # the reward is what the decoder predicts
+        return F.mse_loss(self.reward_decoder(torch.cat([rows, u_con.expand(*rows.shape[:-1], -1)], -1)), symlog(reward))
 
 
 class Hypernet(nn.Module):
@@ -462,7 +474,9 @@ class Hypernet(nn.Module):
         self.template = nn.Parameter(template.clone())
 
     def forward(self, transitions):
-        u_con = self.encoder(transitions)
+        return self.generate(self.encoder(transitions))
+
+    def generate(self, u_con):
         chunk_input = torch.cat([u_con.expand(len(self.chunk_embeddings), -1), self.chunk_embeddings], -1)
         return self.template + self.generator(chunk_input).flatten()[: self.num_params]
 
@@ -650,14 +664,18 @@ def policy_loss(model: WorldModel, weights, zs, scale: RunningScale, args: Args)
 def update(model, hypernet, optimizers, scale, layout, n_wm, obs, action, reward, context, discount, args: Args) -> dict:
     wm_optimizer, pi_optimizer, hyper_optimizer = optimizers
     model.train()
-    # phase 1: world-model base slice and hypernet on the world-model loss + adapter penalty
-    phi = hypernet(context)
+    # phase 1: world-model base slice and hypernet on the world-model loss + adapter penalty (+ reward decoder)
+    u_con = hypernet.encoder(context)
+    phi = hypernet.generate(u_con)
     weights = adapted_weights(model, phi, layout)
     wm_loss, zs, info = world_model_loss(model, weights, obs, action, reward, discount, args)
     adapter_penalty = args.adapter_l2 * phi[:n_wm].pow(2).sum()
+    decoder_loss = hypernet.encoder.decoder_loss(u_con, obs, action, reward) if args.decoder_coef > 0 else 0.0
+    if args.decoder_coef > 0:
+        info["decoder_loss"] = decoder_loss.detach()
     wm_optimizer.zero_grad(set_to_none=True)
     hyper_optimizer.zero_grad(set_to_none=True)
-    (wm_loss + adapter_penalty).backward()
+    (wm_loss + adapter_penalty + args.decoder_coef * decoder_loss).backward()
     wm_params = [p for g in wm_optimizer.param_groups for p in g["params"]]
     grad_norm = nn.utils.clip_grad_norm_(wm_params + list(hypernet.parameters()), args.grad_clip_norm)
     wm_optimizer.step()
@@ -999,7 +1017,7 @@ def main(args: Args):
     purge_step = None
     if args.resume or args.eval_only:  # the checkpoint's arguments; a flag given explicitly with another value is an error
         saved = read_checkpoint(args.resume or args.checkpoint)
-        architecture = ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim")
+        architecture = ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim", "decoder_coef")
         adopt_args(args, saved["args"], None if args.resume else architecture, args.resume or args.checkpoint)  # --resume: every flag
         purge_step, saved = saved["global_step"] + 1 if args.resume else None, None  # checkpoints are large: keep only the step
     total_timesteps, seed_steps, prefill = validate_args(args)

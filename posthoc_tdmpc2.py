@@ -131,6 +131,9 @@ class Args:
     """agent steps between pool refreshes, each replacing one environment's oldest episode (in turn); 0: never"""
     context_standardize: bool = True
     """standardise context features by per-feature statistics of the initial pool (kept in the checkpoint)"""
+    decoder_coef: float = 0.0
+    """weight of a reward decoder on u_con, a departure from the paper (0: none, the paper's method): an MLP predicts the
+    update batch's symlog rewards from (s, a, s') and u_con, a direct identification signal for the context encoder"""
 
     # evaluation (paper Exp 1 / Exp 2)
 
@@ -190,7 +193,7 @@ def validate_args(args: Args) -> tuple[int, int, int]:
         raise SystemExit("error: --eval-only and --resume exclude each other")
     check_counts(args, ("total_timesteps", "batch_size", "horizon", "iterations", "num_samples", "log_every", "checkpoint_every",
                         "checkpoint_minutes", "threads", "rank", "context_episodes", "eval_episodes", "context_dim", "embed_hidden",
-                        "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps"))
+                        "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps", "decoder_coef"))
     if args.num_bins < 2 or args.vmin >= args.vmax:
         raise SystemExit(f"error: need --num-bins >= 2 and --vmin < --vmax, got {args.num_bins}, {args.vmin}, {args.vmax}")
     budget = resolve_budget(args, envs_filled=1)  # (total agent steps, --seed-steps, prefill of a pass)
@@ -440,6 +443,8 @@ class ContextEncoder(nn.Module):
         self.register_buffer("feature_std", torch.ones(transition_dim))
         self.embed = nn.Sequential(hidden_mlp(transition_dim, args.embed_hidden, args.embed_hidden), nn.Mish())
         self.context = hidden_mlp(args.embed_hidden, args.embed_hidden, args.context_dim)
+        # --decoder-coef: r from (s, a, s') and u_con; only u_con tells the environments' rewards apart
+        self.reward_decoder = hidden_mlp(transition_dim + args.context_dim, args.embed_hidden, 1) if args.decoder_coef > 0 else None
 
     def set_statistics(self, transitions):
         """Fix the per-feature standardisation; constant features (std ~0) are only centred."""
@@ -449,6 +454,13 @@ class ContextEncoder(nn.Module):
 
     def forward(self, transitions):  # [N, transition_dim] -> [context_dim]
         return self.context(self.embed((transitions - self.feature_mean) / self.feature_std).mean(0))
+
+    def decoder_loss(self, u_con, obs, action, reward):
+        """MSE of the decoded symlog(r) of replay transitions [H, B] of u_con's environment (--decoder-coef)."""
+        rows = torch.cat([obs[:-1], action, torch.zeros_like(reward), obs[1:]], -1)  # the context's (s, a, r, s') layout
+        rows = (rows - self.feature_mean) / self.feature_std
+        rows[..., obs.shape[-1] + action.shape[-1]] = 0.0  # the reward is what the decoder predicts
+        return F.mse_loss(self.reward_decoder(torch.cat([rows, u_con.expand(*rows.shape[:-1], -1)], -1)), symlog(reward))
 
 
 class Hypernet(nn.Module):
@@ -469,7 +481,9 @@ class Hypernet(nn.Module):
         self.template = nn.Parameter(template.clone())
 
     def forward(self, transitions):
-        u_con = self.encoder(transitions)
+        return self.generate(self.encoder(transitions))
+
+    def generate(self, u_con):
         chunk_input = torch.cat([u_con.expand(len(self.chunk_embeddings), -1), self.chunk_embeddings], -1)
         return self.template + self.generator(chunk_input).flatten()[: self.num_params]
 
@@ -658,14 +672,18 @@ def update(model, hypernet, optimizers, scale, layout, n_wm, obs, action, reward
     wm_optimizer, pi_optimizer, hyper_optimizer = optimizers
     base_pass = context is None  # pass 1: plain TD-MPC2 on the base; pass 2: CLAW's update, hypernet optimiser only
     model.train()
-    # phase 1: world-model base slice (pass 1) or hypernet (pass 2) on the world-model loss + adapter penalty
-    phi = None if base_pass else hypernet(context)
+    # phase 1: world-model base slice (pass 1) or hypernet (pass 2) on the world-model loss + adapter penalty (+ reward decoder)
+    u_con = None if base_pass else hypernet.encoder(context)
+    phi = None if base_pass else hypernet.generate(u_con)
     weights = model.base_weights() if base_pass else adapted_weights(model, phi, layout)
     wm_loss, zs, info = world_model_loss(model, weights, obs, action, reward, discount, args)
     adapter_penalty = 0.0 if base_pass else args.adapter_l2 * phi[:n_wm].pow(2).sum()
+    decoder_loss = hypernet.encoder.decoder_loss(u_con, obs, action, reward) if args.decoder_coef > 0 and not base_pass else 0.0
+    if args.decoder_coef > 0 and not base_pass:
+        info["decoder_loss"] = decoder_loss.detach()
     optimizer = wm_optimizer if base_pass else hyper_optimizer
     optimizer.zero_grad(set_to_none=True)
-    (wm_loss + adapter_penalty).backward()
+    (wm_loss + adapter_penalty + args.decoder_coef * decoder_loss).backward()
     params = [p for g in optimizer.param_groups for p in g["params"]]
     grad_norm = nn.utils.clip_grad_norm_(params, args.grad_clip_norm)
     optimizer.step()
@@ -1009,7 +1027,7 @@ def main(args: Args):
     purge_step = None
     if args.resume or args.eval_only:  # the checkpoint's arguments; a flag given explicitly with another value is an error
         saved = read_checkpoint(args.resume or args.checkpoint)
-        architecture = ("family", "model_size", "rank", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim")
+        architecture = ("family", "model_size", "rank", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim", "decoder_coef")
         adopt_args(args, saved["args"], None if args.resume else architecture, args.resume or args.checkpoint)  # --resume: every flag
         purge_step, saved = saved["global_step"] + 1 if args.resume else None, None  # checkpoints are large: keep only the step
     total_timesteps, seed_steps, prefill = validate_args(args)

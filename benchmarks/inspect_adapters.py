@@ -102,7 +102,8 @@ def main(argv=None):
     replay = claw.ReplayBuffer(state["replay"]["size"], obs_dim, act_dim, n, args.horizon, "cpu")
     replay.load_state_dict(state["replay"])
     torch.manual_seed(0)
-    phi = hypernet(training[0, 0])
+    u_con = hypernet.encoder(training[0, 0])
+    phi = hypernet.generate(u_con)
     batch, weights = replay.sample(0, args.batch_size), claw.adapted_weights(model, phi, layout)
     discount = claw.default_discount(args, episode_length(args.family))
 
@@ -111,16 +112,19 @@ def main(argv=None):
         return claw.world_model_loss(model, weights, *batch, discount, dataclasses.replace(args, **coefs))[0]
 
     penalty = args.adapter_l2 * phi[:n_wm].pow(2).sum()
-    (loss_with() + penalty).backward(retain_graph=True)
-    parts = {"context encoder": hypernet.encoder, "generator": hypernet.generator}
-    norms = {name: torch.cat([p.grad.flatten() for p in part.parameters()]).norm() for name, part in parts.items()}
+    decoder = args.decoder_coef * hypernet.encoder.decoder_loss(u_con, *batch) if args.decoder_coef > 0 else None
+    (loss_with() + penalty + (0.0 if decoder is None else decoder)).backward(retain_graph=True)
+    encoder_params = [p for name, p in hypernet.encoder.named_parameters() if not name.startswith("reward_decoder.")]
+    parts = {"context encoder": encoder_params, "generator": list(hypernet.generator.parameters())}
+    norms = {name: torch.cat([p.grad.flatten() for p in params]).norm() for name, params in parts.items()}
     norms.update({"chunk embeddings": hypernet.chunk_embeddings.grad.norm(), "template": hypernet.template.grad.norm()})
     print("gradient norms of one world-model loss: " + ", ".join(f"{k} {v:.2e}" for k, v in norms.items()))
     # which weighted loss term reaches the context encoder: only task-dependent terms can teach it the task
     coefs = ("consistency_coef", "reward_coef", "value_coef")
     terms = {c.split("_")[0]: loss_with(**{other: 0.0 for other in coefs if other != c}) for c in coefs}
     terms["adapter L2"] = penalty
-    encoder_params = list(hypernet.encoder.parameters())
+    if decoder is not None:
+        terms["reward decoder (--decoder-coef)"] = decoder
     split = {name: torch.cat([g.flatten() for g in torch.autograd.grad(term, encoder_params, retain_graph=True)]).norm()
              for name, term in terms.items()}
     print("context-encoder gradient norm by weighted loss term: " + ", ".join(f"{k} {v:.2e}" for k, v in split.items()))

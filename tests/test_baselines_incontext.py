@@ -254,3 +254,45 @@ def test_posthoc_resume_across_pass_boundary_freezes_base_and_evaluates_cheetah(
     assert resumed["replay"]["size"] == 1120
     for key, value in pass1["model"].items():
         assert torch.equal(value, resumed["model"][key]), key
+
+
+# ---------------------------------------------------------------------------------------------
+# --decoder-coef (not in the paper), the same code in the four scripts with a context encoder
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("script", ["claw", "film", "concat", "posthoc"])
+def test_decoder_coef_gives_the_context_encoder_a_gradient_of_its_own(script):
+    import claw_tdmpc2 as claw
+
+    module = {"claw": claw, "film": film, "concat": concat, "posthoc": posthoc}[script]
+    obs, action, reward, context = synthetic_batch()
+
+    def build(decoder_coef):
+        torch.manual_seed(0)
+        args = module.Args(model_size="I", decoder_coef=decoder_coef, **({"rank": 2} if module in (claw, posthoc) else {}))
+        model = module.WorldModel(24, 6, "I", args)
+        if module is concat:
+            hypernet = concat.ContextEncoder(2 * 24 + 6 + 1, args)
+            return args, model, hypernet, hypernet, ()
+        layout, n_wm, n_pi = film.film_layout(model) if module is film else module.lora_layout(model, args.rank)
+        template = torch.zeros(n_wm + n_pi) if module is film else module.lora_template(layout, n_wm + n_pi)
+        hypernet = module.Hypernet(2 * 24 + 6 + 1, template, args)
+        return args, model, hypernet, hypernet.encoder, (layout, n_wm)
+
+    def update(args, model, hypernet, layout_args):
+        optimizers = module.make_optimizers(model, hypernet, args)
+        return module.update(model, hypernet, optimizers, module.RunningScale(args.tau, "cpu"), *layout_args,
+                             obs, action, reward, context, 0.99, args)
+
+    args, model, hypernet, encoder, layout_args = build(0.0)
+    assert encoder.reward_decoder is None and "decoder_loss" not in update(args, model, hypernet, layout_args)
+    args, model, hypernet, encoder, layout_args = build(1.0)
+    # the decoder's loss alone reaches every parameter of the encoder, also where the generator is still zero
+    encoder.decoder_loss(encoder(context), obs, action, reward).backward()
+    assert all(p.grad is not None and p.grad.any() for p in encoder.parameters())
+    encoder.zero_grad()
+    decoder_before = [p.detach().clone() for p in encoder.reward_decoder.parameters()]
+    info = update(args, model, hypernet, layout_args)
+    assert float(info["decoder_loss"]) > 0
+    assert not any(torch.equal(a, b) for a, b in zip(decoder_before, encoder.reward_decoder.parameters()))
+    with pytest.raises(SystemExit, match="--decoder-coef must be >= 0"):
+        module.validate_args(module.Args(decoder_coef=-1.0))
