@@ -21,6 +21,8 @@ checkpoint with benchmarks/context_controls.py (own vs another environment's con
 writing controls.json and controls.md in its run directory, with each scale's Exp 1/2 evaluation settings
 (SCALES[scale]["controls"]). It waits for its CLAW run: the launcher starts it once that run is "done" (rerun
 the launcher later); a controls run whose checkpoint is ready starts ahead of the training runs still queued.
+Experiment decoder (not in the paper) reruns Exp 1/2's CLAW runs with --decoder-coef 1.0, a reward decoder on u_con
+that gives the context encoder an identification signal (RESULTS.md); its runs are method claw_decoder in the tables.
 
 Scales:
   paper  the paper's tables: families, sizes, ranks, budgets, 5 seeds (GPU work).
@@ -60,6 +62,9 @@ import submitit
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPTS = {m: f"{m}_tdmpc2.py" for m in ("claw", "dr", "st", "oracle", "film", "concat", "posthoc")}
 SCRIPTS["controls"] = os.path.join("benchmarks", "context_controls.py")  # evaluation only: Run.command
+# experiment decoder: CLAW with its reward decoder on u_con (a departure from the paper), a method of its own in the tables
+SCRIPTS["claw_decoder"] = SCRIPTS["claw"]
+DECODER_FLAGS = ["--decoder-coef", "1.0"]  # chosen at the cpu scale, RESULTS.md "An identification loss"
 # Paper Table "Experiment 3 model-size sweep": LoRA rank tied to size.
 LOCK = "run.lock"  # held by the process that runs the run, for the run's lifetime (lock_run)
 SIZE_RANKS = {"A": 16, "B": 16, "D": 16, "E": 16, "F": 8, "G": 4, "H": 2, "I": 1}
@@ -162,6 +167,11 @@ def recipe(experiment: str, scale: str) -> list[Run]:
                     extra = s.get("exp12", []) if method != "claw" else _without_sweep(s.get("exp12", []))
                     extra = extra + s.get("exp12_family", {}).get(family, [])
                     runs.append(Run(method, family, s["exp12_size"], s["exp12_rank"], seed, s["common"] + extra))
+    elif experiment == "decoder":  # Exp 1/2's CLAW runs again, with --decoder-coef
+        for seed in s["seeds"]:
+            for family in s["exp12_families"]:
+                extra = _without_sweep(s.get("exp12", [])) + s.get("exp12_family", {}).get(family, []) + DECODER_FLAGS
+                runs.append(Run("claw_decoder", family, s["exp12_size"], s["exp12_rank"], seed, s["common"] + extra))
     elif experiment == "controls":  # evaluation only: the Exp 1/2 CLAW runs' checkpoints
         for seed in s["seeds"]:
             for family in s["exp12_families"]:
@@ -193,7 +203,7 @@ def recipe(experiment: str, scale: str) -> list[Run]:
             for method in ("claw", "posthoc"):
                 runs.append(Run(method, "cheetah_walker", size, SIZE_RANKS[size], seed, s["common"] + s["exp345"]))
     else:
-        raise SystemExit(f"error: unknown experiment {experiment!r}; valid: budget controls exp1 exp2 exp3 exp4 exp5")
+        raise SystemExit(f"error: unknown experiment {experiment!r}; valid: budget controls decoder exp1 exp2 exp3 exp4 exp5")
     for run in runs:
         run.experiments.append(experiment)
     return runs
@@ -521,7 +531,7 @@ def parse_minutes(text: str) -> int:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("experiments", nargs="+", choices=["budget", "controls", "exp1", "exp2", "exp3", "exp4", "exp5"])
+    parser.add_argument("experiments", nargs="+", choices=["budget", "controls", "decoder", "exp1", "exp2", "exp3", "exp4", "exp5"])
     parser.add_argument("--scale", choices=list(SCALES), default="paper")
     parser.add_argument("--launcher", choices=["local", "slurm"], default="local",
                         help="local: runs on this machine; slurm: submits a job array and returns")

@@ -30,8 +30,9 @@ from benchmarks.aggregate import controls_rows, load_runs, summarize, training_c
 from benchmarks.experiments import SIZE_RANKS  # noqa: E402
 
 COLORS = {"claw": "tab:red", "dr": "tab:blue", "st": "tab:green", "oracle": "black", "film": "tab:purple",
-          "concat": "tab:orange", "posthoc": "tab:gray"}
-LABELS = {"claw": "CLAW", "dr": "DR", "st": "ST", "oracle": "Oracle", "film": "FiLM", "concat": "Concat", "posthoc": "Post-hoc"}
+          "concat": "tab:orange", "posthoc": "tab:gray", "claw_decoder": "tab:pink"}
+LABELS = {"claw": "CLAW", "dr": "DR", "st": "ST", "oracle": "Oracle", "film": "FiLM", "concat": "Concat", "posthoc": "Post-hoc",
+          "claw_decoder": "CLAW + reward decoder (not the paper's)"}
 METAWORLD = ("reach", "push")
 
 
@@ -85,7 +86,7 @@ def figure_exp1(rows, curves, out) -> str | None:
         return "exp1: no DR/ST/Oracle runs"
 
     def draw(ax, family, metric):
-        for method in ("claw", "dr", "st", "oracle"):
+        for method in ("claw", "dr", "st", "oracle", "claw_decoder"):
             points = select(curves, family=family, method=method, metric=metric)
             if points:
                 x, y = [p["step"] for p in points], [p["mean"] for p in points]
@@ -111,9 +112,10 @@ def figure_exp2(rows, curves, out) -> str | None:
                 steps += [p["x"] for p in points]
                 ax.errorbar([p["x"] for p in points], [p["mean"] for p in points], yerr=[_ci(p["ci95"]) for p in points],
                             color=COLORS[method], label=LABELS[method], marker="o", capsize=3)
-        for p in select(rows, family=family, method="claw", metric=metric):
-            ax.axhline(p["mean"], color=COLORS["claw"], label="CLAW (1 hypernet pass)")
-            ax.axhspan(p["mean"] - _ci(p["ci95"]), p["mean"] + _ci(p["ci95"]), color=COLORS["claw"], alpha=0.15)
+        for method in ("claw", "claw_decoder"):  # one hypernet pass each: a band
+            for p in select(rows, family=family, method=method, metric=metric):
+                ax.axhline(p["mean"], color=COLORS[method], label=f"{LABELS[method]}, 1 hypernet pass")
+                ax.axhspan(p["mean"] - _ci(p["ci95"]), p["mean"] + _ci(p["ci95"]), color=COLORS[method], alpha=0.15)
         ax.set_xscale("symlog", linthresh=1)
         ax.set_xlim(0, max(steps) * 1.5 + 1)
         ax.set_xlabel("offline gradient steps")

@@ -291,6 +291,12 @@ def test_learn_recipes_and_budget_training_curves(monkeypatch):
     assert len({r.name for r in budget}) == 4 and all("--train-env-id" in r.command("d") for r in budget)
     exp12 = experiments.plan_runs(["exp1", "exp2"], "learn")
     assert {(r.family, r.size) for r in exp12} == {("reach", "F"), ("walker", "F")} and len(exp12) == 2 * 4 * 3
+    decoder = experiments.plan_runs(["decoder"], "learn")  # Exp 1/2's CLAW runs with --decoder-coef, named apart
+    claw12 = [r for r in exp12 if r.method == "claw"]
+    assert [(r.family, r.seed) for r in decoder] == [(r.family, r.seed) for r in claw12]
+    assert all(r.command("d")[1].endswith("claw_tdmpc2.py") and r.command("d")[-2:] == ["--decoder-coef", "1.0"] for r in decoder)
+    assert [r.command("d")[:-2] for r in decoder] == [r.command("d") for r in claw12]
+    assert not {r.name for r in decoder} & {r.name for r in exp12}
     exp45 = experiments.plan_runs(["exp4", "exp5"], "learn")  # at the budget chosen from the curves: 2 x 20,000 steps
     assert sorted({(r.method, r.rank) for r in exp45}) == [("claw", 1), ("claw", 4), ("claw", 8), ("claw", 16), ("concat", 8),
                                                             ("film", 8), ("posthoc", 8)]
