@@ -20,6 +20,12 @@ longer matches `claw_tdmpc2.py --eval-only` bit for bit.
 
     python benchmarks/context_controls.py runs/<run>/checkpoint.pt [--swap-offset 1] [--context-episodes 1 3 10]
         [--eval-episodes 10] [--online-eval-steps 0] [--compile off] [--out controls.md] [--json controls.json]
+        [--progress PREFIX]
+
+Nothing finished is lost on interruption: with --progress (default: the --json path) each finished arm, and inside
+an arm each finished environment (claw_tdmpc2.evaluate's own progress file), is saved under PREFIX.*; the same
+command run again takes them up (for the same checkpoint weights and settings) and gives the numbers an
+uninterrupted run gives. They are removed once the result is written.
 
 --json writes the dict that controls() returns; JSON turns its integer keys (environments, context sizes) into strings,
 and an online arm that finishes no episode is NaN there, as Python's json writes and reads it.
@@ -97,33 +103,48 @@ def load(path: str):
     return args, model, hypernet, layout, claw.default_discount(args, episode_length(args.family)), rng
 
 
-def run_arm(loaded, hypernet_input, eval_args: claw.Args) -> dict:
+def run_arm(loaded, hypernet_input, eval_args: claw.Args, progress_path: str | None = None) -> dict:
     """One claw_tdmpc2.evaluate() call from the --eval-only random state -> {"offline": {env: mean return},
-    "online": {env: mean return over the finished online episodes (NaN: none finished)}} (no "online" without online steps)."""
+    "online": {env: mean return over the finished online episodes (NaN: none finished)}} (no "online" without online steps).
+    progress_path: evaluate()'s per-environment progress file, taken up if an interrupted arm left one."""
     args, model, hypernet, layout, discount, rng = loaded
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.set_rng_state(rng)
     with contextlib.redirect_stdout(io.StringIO()):  # evaluate's own per-environment lines
-        results = claw.evaluate(model, hypernet_input, layout, discount, NullWriter(), torch.device("cpu"), eval_args)
+        results = claw.evaluate(model, hypernet_input, layout, discount, NullWriter(), torch.device("cpu"), eval_args, progress_path)
     return {protocol: {env_id: float(np.mean([r["return"] for r in records])) if records else float("nan")
                        for env_id, records in results[protocol].items()}
             for protocol in ("offline", "online") if protocol == "offline" or eval_args.online_eval_steps > 0}
 
 
+def load_finished_arms(progress: str | None, identity: tuple, log) -> dict:
+    """The arms an interrupted run of the same checkpoint weights and settings finished ({} if none)."""
+    if not progress or not os.path.exists(progress + ".arms.pt"):
+        return {}
+    saved = torch.load(progress + ".arms.pt", weights_only=False)
+    if saved["identity"] != identity:
+        log(f"ignoring {progress}.arms.pt: saved for other checkpoint weights or settings")
+        return {}
+    log(f"resumed from {progress}.arms.pt: {len(saved['arms'])} arms done")
+    return saved["arms"]
+
+
 def controls(path: str, swap_offset: int = 1, context_episodes=(1, 3, 10), eval_episodes: int = 10,
-             online_eval_steps: int = 0, log=print) -> dict:
+             online_eval_steps: int = 0, log=print, progress: str | None = None) -> dict:
     """{"context_episodes": K (the checkpoint's), "swap": {"own"|"swapped": {"offline"|"online": {env: return}}},
-    "size": {k: {env: offline return}}}."""
+    "size": {k: {env: offline return}}}. progress: prefix of the files that let an interrupted run go on."""
     loaded = load(path)
-    args, hypernet = loaded[0], loaded[2]
+    args, model, hypernet = loaded[0], loaded[1], loaded[2]
     n = num_envs(args.family)
     if swap_offset % n == 0:
         raise SystemExit(f"error: --swap-offset {swap_offset} is a multiple of the {n} environments of {args.family}: "
                          "every environment would get its own context")
     if min(context_episodes) < 1 or eval_episodes < 1 or online_eval_steps < 0:
         raise SystemExit("error: --context-episodes and --eval-episodes must be >= 1, --online-eval-steps >= 0")
-    cache = {}
+    # what the saved arms' numbers depend on besides their keys; a compiled planner draws other random streams
+    identity = (claw.weights_digest(model), claw.weights_digest(hypernet), eval_episodes, getattr(claw.plan, "is_compiled", False))
+    cache = load_finished_arms(progress, identity, log)
 
     def arm(episodes: int, offset: int | None, online_steps: int) -> dict:
         key = (episodes, offset, online_steps)  # every arm is deterministic: equal keys give equal numbers
@@ -133,7 +154,10 @@ def controls(path: str, swap_offset: int = 1, context_episodes=(1, 3, 10), eval_
             eval_args = dataclasses.replace(args, context_episodes=episodes, eval_episodes=eval_episodes, online_eval_steps=online_steps)
             hypernet_input = hypernet if offset is None else SwappedContext(
                 hypernet, [own_context(args, j, episodes) for j in range(n)], offset)
-            cache[key] = run_arm(loaded, hypernet_input, eval_args)
+            cache[key] = run_arm(loaded, hypernet_input, eval_args, progress and f"{progress}.arm-{episodes}-{offset}-{online_steps}.pt")
+            if progress:  # atomic, as evaluate()'s own progress file
+                torch.save({"identity": identity, "arms": cache}, progress + ".arms.tmp")
+                os.replace(progress + ".arms.tmp", progress + ".arms.pt")
         return cache[key]
 
     k = args.context_episodes
@@ -189,12 +213,14 @@ def main(argv=None):
                              "Compiled and eager draw other random streams: the own arm then differs from --eval-only's numbers")
     parser.add_argument("--out", help="also write the markdown tables to this file")
     parser.add_argument("--json", help="also write the result as JSON to this file (atomically)")
+    parser.add_argument("--progress", help="prefix of the files that let an interrupted run go on (default: the --json path)")
     cli = parser.parse_args(argv)
     torch.set_num_threads(cli.threads)
     if cli.compile == "on":  # evaluate() looks plan up in claw's globals, as claw.main's own --compile rebinding relies on
         claw.plan = claw.compiled(claw.plan, torch.device("cpu"))
+    progress = cli.progress or cli.json
     result = controls(cli.checkpoint, cli.swap_offset, cli.context_episodes, cli.eval_episodes, cli.online_eval_steps,
-                      log=lambda line: print(line, file=sys.stderr, flush=True))
+                      log=lambda line: print(line, file=sys.stderr, flush=True), progress=progress)
     text = report(cli.checkpoint, result)
     print(text)
     if cli.out:
@@ -204,6 +230,8 @@ def main(argv=None):
         with open(cli.json + ".tmp", "w") as f:
             json.dump(result, f, indent=1)
         os.replace(cli.json + ".tmp", cli.json)
+    if progress and os.path.exists(progress + ".arms.pt"):  # the result is written: nothing left to resume
+        os.remove(progress + ".arms.pt")
     return result
 
 

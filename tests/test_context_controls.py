@@ -123,3 +123,28 @@ def test_one_line_errors(checkpoint, tmp_path):
         context_controls.main([str(foreign)])
     with pytest.raises(SystemExit, match="--swap-offset 6 is a multiple of the 6 environments"):
         context_controls.main([checkpoint, "--swap-offset", "6"])
+
+
+def test_an_interrupted_run_goes_on_from_its_finished_arms_and_environments(checkpoint, tmp_path, monkeypatch):
+    argv = [checkpoint, "--context-episodes", "1", "2", "--eval-episodes", "1", "--swap-offset", "2"]
+    uninterrupted = context_controls.main([*argv, "--progress", str(tmp_path / "whole")])
+    calls, offline = [], claw.offline_adaptation
+
+    def killed_in_the_second_arm(*args, **kwargs):  # arm 1 runs environments 0-5, arm 2 is killed in environment 2
+        calls.append(1)
+        if len(calls) == N_ENVS + 3:
+            raise KeyboardInterrupt
+        return offline(*args, **kwargs)
+
+    monkeypatch.setattr(claw, "offline_adaptation", killed_in_the_second_arm)
+    json_path = tmp_path / "c.json"
+    with pytest.raises(KeyboardInterrupt):
+        context_controls.main([*argv, "--json", str(json_path)])
+    assert os.path.exists(f"{json_path}.arms.pt") and os.path.exists(f"{json_path}.arm-1-2-0.pt") and not json_path.exists()
+    monkeypatch.setattr(claw, "offline_adaptation", offline)
+    calls.clear()
+    monkeypatch.setattr(claw, "offline_adaptation", lambda *a, **k: calls.append(1) or offline(*a, **k))
+    resumed = context_controls.main([*argv, "--json", str(json_path)])
+    assert resumed == uninterrupted
+    assert len(calls) == (N_ENVS - 2) + N_ENVS  # the rest of arm 2, then the 2-episode arm; arm 1 not rerun
+    assert sorted(os.listdir(tmp_path)) == ["c.json"]  # progress files removed once the result is written
