@@ -449,9 +449,9 @@ class ContextEncoder(nn.Module):
         return self.context(self.embed((transitions - self.feature_mean) / self.feature_std).mean(0))
 
     def decoder_loss(self, u_con, obs, action, reward):
-        """MSE of the decoded symlog(r) of replay transitions [H, B] of u_con's environment (--decoder-coef)."""
-        rows = torch.cat([obs[:-1], action, torch.zeros_like(reward), obs[1:]], -1)  # the context's (s, a, r, s') layout
-        rows = (rows - self.feature_mean) / self.feature_std
+        """MSE of the decoded symlog(r) of replay transitions [H, B] of u_con's environment (--decoder-coef), their rows
+        (s, a, r, s') laid out and standardised as context rows."""
+        rows = (torch.cat([obs[:-1], action, torch.zeros_like(reward), obs[1:]], -1) - self.feature_mean) / self.feature_std
         rows[..., obs.shape[-1] + action.shape[-1]] = 0.0  # the reward is what the decoder predicts
         return F.mse_loss(self.reward_decoder(torch.cat([rows, u_con.expand(*rows.shape[:-1], -1)], -1)), symlog(reward))
 
@@ -1045,7 +1045,7 @@ def main(args: Args):
     layout, n_wm, n_pi = film_layout(model)
     hypernet = Hypernet(2 * obs_dim + act_dim + 1, torch.zeros(n_wm + n_pi), args).to(device)  # template 0: identity
     print(f"base parameters: {sum(p.numel() for p in model.base_parameters())}")
-    print(f"adapter parameters: {n_wm} (world model) + {n_pi} (policy)")
+    print(f"adapter parameters: {n_wm} (world model) + {n_pi} (policy)", flush=True)
     print(f"hypernetwork parameters: {sum(p.numel() for p in hypernet.parameters())}", flush=True)
     if args.dry_run:
         return
@@ -1066,6 +1066,7 @@ def main(args: Args):
                    name=os.path.basename(os.path.abspath(run_dir)), save_code=True)
     writer = SummaryWriter(run_dir, purge_step=purge_step)  # a resumed run replaces the events logged after its checkpoint
     writer.add_text("hyperparameters", hyperparameter_text(args, total_timesteps=total_timesteps, seed_steps=seed_steps, discount=discount, device=device))
+    scale = RunningScale(args.tau, device)
     if args.eval_only:
         load_checkpoint(args.checkpoint, model, hypernet)
         evaluate(model, hypernet, layout, discount, writer, device, args)
@@ -1075,7 +1076,6 @@ def main(args: Args):
         return
 
     optimizers = make_optimizers(model, hypernet, args)
-    scale = RunningScale(args.tau, device)
     replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     global_step, burst_left, saved_at, saved_step = 0, args.burst_updates, time.time(), 0
@@ -1131,7 +1131,7 @@ def main(args: Args):
         if terminated or truncated:
             writer.add_scalar("charts/episodic_return", episode_return, global_step)
             writer.add_scalar("charts/episodic_success", float(step_info.get("success", 0.0)), global_step)
-            writer.add_scalar(f"charts/env{rollout_env}/episodic_return", episode_return, global_step)
+            writer.add_scalar(f"charts/env{envs[rollout_env].unwrapped.env_id}/episodic_return", episode_return, global_step)
             recent.append((episode_return, float(step_info.get("success", 0.0))))
             first = True
         pool.refresh(global_step)

@@ -176,7 +176,7 @@ def validate_args(args: Args) -> tuple[int, int, int]:
         raise SystemExit("error: --eval-only and --resume exclude each other")
     check_counts(args, ("total_timesteps", "batch_size", "horizon", "iterations", "num_samples", "log_every", "checkpoint_every",
                         "checkpoint_minutes", "threads", "rank", "context_episodes", "eval_episodes", "context_dim", "embed_hidden",
-                        "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps"))
+                        "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps", "decoder_coef"))
     if args.num_bins < 2 or args.vmin >= args.vmax:
         raise SystemExit(f"error: need --num-bins >= 2 and --vmin < --vmax, got {args.num_bins}, {args.vmin}, {args.vmax}")
     budget = resolve_budget(args)  # (total agent steps, --seed-steps, prefill agent steps)
@@ -579,7 +579,7 @@ def update(model, optimizers, scale, obs, action, reward, discount, args: Args) 
     pi_loss.backward()
     nn.utils.clip_grad_norm_(model.policy.parameters(), args.grad_clip_norm)
     pi_optimizer.step()
-    # target critic: EMA of the online critic
+    # target critic: EMA of the base weights only
     with torch.no_grad():
         torch._foreach_lerp_(list(model.target_qs.parameters()), list(model.qs.parameters()), args.tau)
     model.eval()

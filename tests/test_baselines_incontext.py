@@ -137,7 +137,7 @@ def test_concat_encoder_input_is_obs_plus_context(tmp_path, capsys):
     concat.main(tiny_args(concat, tmp_path, family="cheetah_walker", model_size="F", dry_run=True))
     out = capsys.readouterr().out
     assert f"base parameters: {60667 + 64 * 64}\n" in out  # only the encoder's first layer widens
-    assert "adapter parameters: 0 (world model) + 0 (policy)\ncontext dimension: 64\ncontext encoder parameters: " in out
+    assert "adapter parameters: 0 (world model) + 0 (policy)\ncontext encoder parameters: " in out and "(context dimension 64)\n" in out
 
 
 def test_concat_context_conditions_latent_and_trains_end_to_end():
