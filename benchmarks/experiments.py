@@ -2,6 +2,7 @@
 
     python benchmarks/experiments.py exp1 --dry-run            # list the commands (paper scale)
     python benchmarks/experiments.py exp1 exp2 --scale cpu --launcher local --workers 2
+    python benchmarks/experiments.py decoder --scale learn --families reach --seeds 2 3   # a part of a recipe first
     python benchmarks/experiments.py exp1 exp2 --launcher slurm --partition gpu --time 12:00:00 \
         --cpus-per-task 8 --gpus-per-task 1                   # one SLURM job array, then returns
     python benchmarks/aggregate.py runs/sweeps/cpu             # tables with 95% CIs
@@ -539,6 +540,9 @@ def main(argv=None):
                         help="parallel runs (local: default 1; slurm: array parallelism, default no cap)")
     parser.add_argument("--root", default=None, help="sweep directory (default runs/sweeps/{scale})")
     parser.add_argument("--methods", nargs="+", choices=list(SCRIPTS), default=None, help="only these methods' runs")
+    parser.add_argument("--families", nargs="+", default=None, metavar="FAMILY",
+                        help="only these families' runs (as run names spell them: reach, walker, cheetah_walker, ...)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=None, metavar="SEED", help="only these seeds' runs")
     parser.add_argument("--dry-run", action="store_true", help="list the commands and exit")
     group = parser.add_argument_group("slurm", "options of --launcher slurm")
     group.add_argument("--partition", default=None)
@@ -586,7 +590,12 @@ def main(argv=None):
     root = cli.root or os.path.join("runs", "sweeps", cli.scale)
     if os.path.exists(root) and not os.path.isdir(root):
         raise SystemExit(f"error: --root {root!r} exists and is not a directory")
-    runs = [r for r in plan_runs(cli.experiments, cli.scale) if cli.methods is None or r.method in cli.methods]
+    planned = plan_runs(cli.experiments, cli.scale)
+    for option, values, known in (("--families", cli.families, {r.family for r in planned}), ("--seeds", cli.seeds, {r.seed for r in planned})):
+        if values is not None and set(values) - known:
+            fail(f"{option} {' '.join(map(str, sorted(set(values) - known)))}: not in these recipes (they have {' '.join(map(str, sorted(known)))})")
+    runs = [r for r in planned if (cli.methods is None or r.method in cli.methods) and (cli.families is None or r.family in cli.families)
+            and (cli.seeds is None or r.seed in cli.seeds)]
     print(f"{len(runs)} runs for {' '.join(cli.experiments)} at scale {cli.scale} in {root}")
     failed = launch(runs, os.path.abspath(root), cli.workers, cli.dry_run, cli.launcher, slurm)
     if failed:

@@ -153,12 +153,23 @@ def test_launcher_arguments_fail_in_one_line(capsys):
     for argv, message in ((["--partition", "gpu"], "--partition: options of --launcher slurm only"),
                           (["--launcher", "slurm", "--dry-run", "--time", "soon"], "--time 'soon': expected"),
                           (["--launcher", "slurm", "--dry-run", "--sbatch", "qos"], "--sbatch 'qos': expected KEY=VALUE"),
-                          (["--workers", "0"], "--workers must be >= 1, got 0")):
+                          (["--workers", "0"], "--workers must be >= 1, got 0"),
+                          (["--families", "reech", "--dry-run"], "--families reech: not in these recipes .they have go1 push reach walker."),
+                          (["--seeds", "0", "9", "--dry-run"], "--seeds 0 9: not in these recipes .they have 1 2 3 4 5.")):
         with pytest.raises(SystemExit, match=message):
             experiments.main(["exp1", *argv])
     assert [experiments.parse_minutes(t) for t in ("90", "01:30:00", "1:00:01", "2-00:30")] == [90, 90, 61, 2910]
     experiments.main(["exp1", "--scale", "smoke", "--launcher", "slurm", "--dry-run", "--gpus-per-task", "1", "--root", "x"])
     assert "--no-cuda" not in capsys.readouterr().out  # GPU runs use CUDA
+
+
+def test_family_and_seed_filters_pick_the_runs_a_launcher_starts(tmp_path, capsys):
+    experiments.main(["exp1", "decoder", "--scale", "learn", "--families", "reach", "--seeds", "2", "3", "--methods", "claw", "claw_decoder",
+                      "--dry-run", "--root", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert out.startswith("4 runs for exp1 decoder at scale learn")
+    assert sorted(line.split("--run-dir ")[1].split()[0].rsplit("/", 1)[1] for line in out.splitlines()[1:]) == [
+        f"{method}__reach__F__r16__s{seed}" for method in ("claw", "claw_decoder") for seed in (2, 3)]
 
 
 def test_grouping_reports_incomplete_runs(tmp_path):
