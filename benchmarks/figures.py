@@ -75,7 +75,11 @@ def save_panel_grid(families, prefix, draw, path):
             family, metric, label = panel
             draw(ax, family, metric)
             ax.set(title=family, ylabel=label)
-    axes[0][-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")  # outside: bands fill the panels
+    handles = {}  # every method drawn in any panel (a family may lack some), once each
+    for ax in axes.flat:
+        for handle, name in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(name, handle)
+    axes[0][-1].legend(handles.values(), handles.keys(), loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")  # outside: bands fill the panels
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 

@@ -108,3 +108,17 @@ def test_exp12_st_runs_have_training_curves_beside_the_budget_runs(monkeypatch):
                  "scalars": {"charts/episodic_return": [(2500, 99.0)]}})
     rows = aggregate.training_curves(runs)
     assert [(r["family"], r["train_env"], r["step"], r["n"], r["mean"]) for r in rows] == [("walker", 0, 2500, 2, 15.0)]
+
+
+def test_panel_grid_legend_lists_every_method_of_every_panel(tmp_path, monkeypatch):
+    methods = {"reach": ["claw", "oracle"], "walker": ["claw", "dr"]}  # the last panel alone lacks the oracle
+
+    def draw(ax, family, metric):
+        for i, method in enumerate(methods[family]):
+            ax.plot([0, 1], [i, i], label=method)
+
+    saved = []
+    monkeypatch.setattr(figures.plt.Figure, "savefig", lambda fig, path, **kwargs: saved.append(fig))
+    figures.save_panel_grid(["reach", "walker"], "online", draw, str(tmp_path / "grid.png"))
+    legend = saved[0].axes[1].get_legend()
+    assert [text.get_text() for text in legend.get_texts()] == ["claw", "oracle", "dr"]
