@@ -35,6 +35,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import glob
+import hashlib
 import io
 import json
 import os
@@ -145,6 +147,13 @@ def controls(path: str, swap_offset: int = 1, context_episodes=(1, 3, 10), eval_
     # what the saved arms' numbers depend on besides their keys; a compiled planner draws other random streams
     identity = (claw.weights_digest(model), claw.weights_digest(hypernet), eval_episodes, getattr(claw.plan, "is_compiled", False))
     cache = load_finished_arms(progress, identity, log)
+    # evaluate() checks its progress file against the model weights only: the per-arm files carry the whole identity
+    # in their names, so one left by other settings is never taken up (and is removed here)
+    tag = hashlib.sha256(repr(identity).encode()).hexdigest()[:12]
+    for saved in glob.glob(glob.escape(progress) + ".arm-*.pt") if progress else []:
+        if not saved.startswith(f"{progress}.arm-{tag}-"):
+            log(f"removing {saved}: saved for other checkpoint weights or settings")
+            os.remove(saved)
 
     def arm(episodes: int, offset: int | None, online_steps: int) -> dict:
         key = (episodes, offset, online_steps)  # every arm is deterministic: equal keys give equal numbers
@@ -154,7 +163,7 @@ def controls(path: str, swap_offset: int = 1, context_episodes=(1, 3, 10), eval_
             eval_args = dataclasses.replace(args, context_episodes=episodes, eval_episodes=eval_episodes, online_eval_steps=online_steps)
             hypernet_input = hypernet if offset is None else SwappedContext(
                 hypernet, [own_context(args, j, episodes) for j in range(n)], offset)
-            cache[key] = run_arm(loaded, hypernet_input, eval_args, progress and f"{progress}.arm-{episodes}-{offset}-{online_steps}.pt")
+            cache[key] = run_arm(loaded, hypernet_input, eval_args, progress and f"{progress}.arm-{tag}-{episodes}-{offset}-{online_steps}.pt")
             if progress:  # atomic, as evaluate()'s own progress file
                 torch.save({"identity": identity, "arms": cache}, progress + ".arms.tmp")
                 os.replace(progress + ".arms.tmp", progress + ".arms.pt")

@@ -140,7 +140,8 @@ def test_an_interrupted_run_goes_on_from_its_finished_arms_and_environments(chec
     json_path = tmp_path / "c.json"
     with pytest.raises(KeyboardInterrupt):
         context_controls.main([*argv, "--json", str(json_path)])
-    assert os.path.exists(f"{json_path}.arms.pt") and os.path.exists(f"{json_path}.arm-1-2-0.pt") and not json_path.exists()
+    assert os.path.exists(f"{json_path}.arms.pt") and not json_path.exists()
+    assert [name.split("-", 2)[2] for name in os.listdir(tmp_path) if name.startswith("c.json.arm-")] == ["1-2-0.pt"]
     monkeypatch.setattr(claw, "offline_adaptation", offline)
     calls.clear()
     monkeypatch.setattr(claw, "offline_adaptation", lambda *a, **k: calls.append(1) or offline(*a, **k))
@@ -148,3 +149,28 @@ def test_an_interrupted_run_goes_on_from_its_finished_arms_and_environments(chec
     assert resumed == uninterrupted
     assert len(calls) == (N_ENVS - 2) + N_ENVS  # the rest of arm 2, then the 2-episode arm; arm 1 not rerun
     assert sorted(os.listdir(tmp_path)) == ["c.json"]  # progress files removed once the result is written
+
+
+def test_an_arm_interrupted_under_other_settings_is_not_taken_up(checkpoint, tmp_path, monkeypatch):
+    """Killed in the first arm (no finished arm saved yet), then rerun with another --eval-episodes: the rerun must not
+    reuse the first run's finished environments, whose episodes were averaged over another count."""
+    argv = [checkpoint, "--context-episodes", "1", "--swap-offset", "2"]
+    expected = context_controls.main([*argv, "--eval-episodes", "2", "--progress", str(tmp_path / "whole")])
+    calls, offline = [], claw.offline_adaptation
+
+    def killed_in_environment_3(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 4:
+            raise KeyboardInterrupt
+        return offline(*args, **kwargs)
+
+    monkeypatch.setattr(claw, "offline_adaptation", killed_in_environment_3)
+    json_path = tmp_path / "c.json"
+    with pytest.raises(KeyboardInterrupt):
+        context_controls.main([*argv, "--eval-episodes", "1", "--json", str(json_path)])
+    assert not os.path.exists(f"{json_path}.arms.pt") and any(name.startswith("c.json.arm-") for name in os.listdir(tmp_path))
+    calls.clear()
+    monkeypatch.setattr(claw, "offline_adaptation", lambda *a, **k: calls.append(1) or offline(*a, **k))
+    assert context_controls.main([*argv, "--eval-episodes", "2", "--json", str(json_path)]) == expected
+    assert len(calls) == 2 * N_ENVS  # own and swapped arms, every environment run again
+    assert sorted(os.listdir(tmp_path)) == ["c.json"]
