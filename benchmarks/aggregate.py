@@ -35,7 +35,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
 
-from benchmarks.experiments import SIZE_RANKS, run_is_live  # noqa: E402
+from benchmarks.experiments import CONTROLS, SIZE_RANKS, run_is_live  # noqa: E402
 from common.evaluation import mean_ci  # noqa: E402
 
 GROUP_KEYS = ("method", "family", "size", "rank")
@@ -103,8 +103,8 @@ def problem(run: dict) -> str | None:
         return f"status {run.get('status', 'unknown')}" + (f" (returncode {run['returncode']})" if "returncode" in run else "")
     if "budget" in run.get("experiments", []):
         return "a training curve (experiment budget), in training_curves.csv"
-    if run.get("method") == "controls":
-        return "context controls (experiment controls), in controls.md"
+    if run.get("method") in CONTROLS:
+        return "context controls (evaluation only), in controls.md"
     if not run_metrics(run):
         return "finished without evaluation events"
     return None
@@ -202,18 +202,18 @@ def training_markdown(rows: list[dict]) -> str:
 
 
 def controls_rows(runs: list[dict]) -> list[dict]:
-    """Experiment controls (benchmarks/context_controls.py on the CLAW Exp 1/2 checkpoints), per family: each seed's
-    family-mean return with its own context, with another environment's, their difference, and per context size;
-    then mean and 95% CI across seeds, and across (seed, environment) pairs (more pairs, but environments of one
-    seed share a network, so this CI is the optimistic one)."""
+    """Context controls (benchmarks/context_controls.py on the Exp 1/2 checkpoints of CLAW, or of CLAW + decoder), per
+    trained method and family: each seed's family-mean return with its own context, with another environment's, their
+    difference, and per context size; then mean and 95% CI across seeds, and across (seed, environment) pairs (more
+    pairs, but environments of one seed share a network, so this CI is the optimistic one)."""
     groups = defaultdict(list)
     for run in runs:
         path = os.path.join(run["dir"], "controls.json")
-        if run.get("method") == "controls" and run.get("status") == "done" and os.path.isfile(path):
+        if run.get("method") in CONTROLS and run.get("status") == "done" and os.path.isfile(path):
             with open(path) as f:
-                groups[(run["family"], run["size"], run["rank"])].append((run["seed"], json.load(f)))
+                groups[(CONTROLS[run["method"]], run["family"], run["size"], run["rank"])].append((run["seed"], json.load(f)))
     rows = []
-    for (family, size, rank), members in sorted(groups.items()):
+    for (method, family, size, rank), members in sorted(groups.items()):
         # (quantity, protocol, arm, context episodes) -> (per-seed means, per-(seed, env) values)
         quantities = defaultdict(lambda: ([], []))
 
@@ -235,17 +235,17 @@ def controls_rows(runs: list[dict]) -> list[dict]:
         for (name, protocol, arm, episodes), (per_seed, per_pair) in quantities.items():
             mean, half = mean_ci(per_seed)
             _, pair_half = mean_ci(per_pair)
-            rows.append({"family": family, "size": size, "rank": rank, "quantity": name, "protocol": protocol, "arm": arm,
+            rows.append({"method": method, "family": family, "size": size, "rank": rank, "quantity": name, "protocol": protocol, "arm": arm,
                          "context_episodes": episodes, "n_seeds": len(per_seed), "mean": mean, "ci95_seeds": half,
                          "n_pairs": len(per_pair), "ci95_pairs": pair_half, "seeds": ",".join(str(seed) for seed, _ in members)})
     return rows
 
 
 def controls_markdown(rows: list[dict]) -> str:
-    lines = ["| family | size | rank | quantity | seeds | mean return | 95% CI across seeds | (seed, env) pairs | 95% CI across pairs |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| method | family | size | rank | quantity | seeds | mean return | 95% CI across seeds | (seed, env) pairs | 95% CI across pairs |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['family']} | {r['size']} | {r['rank']} | {r['quantity']} | {r['n_seeds']} | {r['mean']:.1f} | "
+        lines.append(f"| {r['method']} | {r['family']} | {r['size']} | {r['rank']} | {r['quantity']} | {r['n_seeds']} | {r['mean']:.1f} | "
                      f"± {r['ci95_seeds']:.1f} | {r['n_pairs']} | ± {r['ci95_pairs']:.1f} |")
     return "\n".join(lines) + "\n"
 

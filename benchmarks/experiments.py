@@ -23,7 +23,8 @@ writing controls.json and controls.md in its run directory, with each scale's Ex
 (SCALES[scale]["controls"]). It waits for its CLAW run: the launcher starts it once that run is "done" (rerun
 the launcher later); a controls run whose checkpoint is ready starts ahead of the training runs still queued.
 Experiment decoder (not in the paper) reruns Exp 1/2's CLAW runs with --decoder-coef 1.0, a reward decoder on u_con
-that gives the context encoder an identification signal (RESULTS.md); its runs are method claw_decoder in the tables.
+that gives the context encoder an identification signal (RESULTS.md); its runs are method claw_decoder in the tables,
+and each is followed by its context controls (method controls_decoder, the controls experiment's settings).
 
 Scales:
   paper  the paper's tables: families, sizes, ranks, budgets, 5 seeds (GPU work).
@@ -65,6 +66,9 @@ SCRIPTS = {m: f"{m}_tdmpc2.py" for m in ("claw", "dr", "st", "oracle", "film", "
 SCRIPTS["controls"] = os.path.join("benchmarks", "context_controls.py")  # evaluation only: Run.command
 # experiment decoder: CLAW with its reward decoder on u_con (a departure from the paper), a method of its own in the tables
 SCRIPTS["claw_decoder"] = SCRIPTS["claw"]
+# evaluation-only methods (benchmarks/context_controls.py) -> the trained method whose checkpoints they evaluate
+CONTROLS = {"controls": "claw", "controls_decoder": "claw_decoder"}
+SCRIPTS["controls_decoder"] = SCRIPTS["controls"]
 DECODER_FLAGS = ["--decoder-coef", "1.0"]  # chosen at the cpu scale, RESULTS.md "An identification loss"
 # Paper Table "Experiment 3 model-size sweep": LoRA rank tied to size.
 LOCK = "run.lock"  # held by the process that runs the run, for the run's lifetime (lock_run)
@@ -145,7 +149,7 @@ class Run:
         return f"{self.method}__{self.family}{env}__{self.size}__r{self.rank}__s{self.seed}"
 
     def command(self, run_dir: str, cuda: bool = False) -> list[str]:
-        if self.method == "controls":  # the checkpoint carries its run's arguments; the controls run on the CPU
+        if self.method in CONTROLS:  # the checkpoint carries its run's arguments; the controls run on the CPU
             checkpoint = os.path.join(os.path.dirname(run_dir), self.needs, "checkpoint.pt")
             return [sys.executable, os.path.join(REPO, SCRIPTS[self.method]), checkpoint, *self.extra,
                     "--json", os.path.join(run_dir, "controls.json"), "--out", os.path.join(run_dir, "controls.md")]
@@ -173,12 +177,9 @@ def recipe(experiment: str, scale: str) -> list[Run]:
             for family in s["exp12_families"]:
                 extra = _without_sweep(s.get("exp12", [])) + s.get("exp12_family", {}).get(family, []) + DECODER_FLAGS
                 runs.append(Run("claw_decoder", family, s["exp12_size"], s["exp12_rank"], seed, s["common"] + extra))
+        runs += controls_recipe(s, "controls_decoder")
     elif experiment == "controls":  # evaluation only: the Exp 1/2 CLAW runs' checkpoints
-        for seed in s["seeds"]:
-            for family in s["exp12_families"]:
-                trained = Run("claw", family, s["exp12_size"], s["exp12_rank"], seed)
-                runs.append(Run("controls", family, trained.size, trained.rank, seed,
-                                s["controls"] + s.get("controls_family", {}).get(family, []), needs=trained.name))
+        runs = controls_recipe(s, "controls")
     elif experiment == "budget":  # single-task learning curves on each Cheetah/Walker embodiment
         if "budget" not in s:
             raise SystemExit(f"error: experiment budget is defined at scale learn only, not {scale}")
@@ -207,6 +208,17 @@ def recipe(experiment: str, scale: str) -> list[Run]:
         raise SystemExit(f"error: unknown experiment {experiment!r}; valid: budget controls decoder exp1 exp2 exp3 exp4 exp5")
     for run in runs:
         run.experiments.append(experiment)
+    return runs
+
+
+def controls_recipe(s: dict, method: str) -> list[Run]:
+    """One evaluation-only run per Exp 1/2 family and seed, of that seed's CONTROLS[method] run's checkpoint."""
+    runs = []
+    for seed in s["seeds"]:
+        for family in s["exp12_families"]:
+            trained = Run(CONTROLS[method], family, s["exp12_size"], s["exp12_rank"], seed)
+            runs.append(Run(method, family, trained.size, trained.rank, seed,
+                            s["controls"] + s.get("controls_family", {}).get(family, []), needs=trained.name))
     return runs
 
 

@@ -7,7 +7,7 @@ exp2.png  return (and success) vs offline gradient steps (symlog x); CLAW's pass
 exp3.png  Cheetah/Walker return vs base parameter count (log x) for CLAW, FiLM, Concat; ratio to CLAW
 exp4.png  return vs LoRA rank, and vs adapter size as % of the world model, FiLM/Concat for reference
 exp5.png  Cheetah return: CLAW (joint) vs post-hoc hypernet
-controls.png  CLAW's return with its own minus with another environment's context, and return vs context size (controls)
+controls.png  CLAW's (and CLAW + decoder's) return with its own minus with another environment's context, and return vs context size
 budget.png  ST training curves (experiment budget, and Exp 1/2's ST runs) beside the random policy's return
 A figure whose runs are missing is skipped with a message. Bands and error bars are 95% t-CIs.
 """
@@ -236,24 +236,25 @@ def figure_budget(training, out) -> str | None:
 
 
 def figure_controls(controls, out) -> str | None:
-    """Per family: returns with the own context vs another environment's (each protocol), and against context size."""
-    families = sorted({r["family"] for r in controls})
-    if not families:
+    """Per trained method and family: returns with the own context vs another environment's (each protocol), and
+    against context size."""
+    panels = sorted({(r["method"], r["family"]) for r in controls})
+    if not panels:
         return "controls: no finished controls runs"
-    fig, axes = plt.subplots(2, len(families), figsize=(4.5 * len(families), 7), squeeze=False)
-    for (top, bottom), family in zip(axes.T, families):
-        rows = [r for r in controls if r["family"] == family]
+    fig, axes = plt.subplots(2, len(panels), figsize=(4.5 * len(panels), 7), squeeze=False)
+    for (top, bottom), (method, family) in zip(axes.T, panels):
+        rows = [r for r in controls if (r["method"], r["family"]) == (method, family)]
         drops = [r for r in rows if r["arm"] == "own - another"]  # paired: same seeds and noise otherwise
         own = {r["protocol"]: r["mean"] for r in rows if r["arm"] == "own"}
         top.bar([f"{r['protocol']}\n(own: {own[r['protocol']]:.0f})" for r in drops],
-                [r["mean"] for r in drops], yerr=[_ci(r["ci95_pairs"]) for r in drops], color=COLORS["claw"], capsize=4)
+                [r["mean"] for r in drops], yerr=[_ci(r["ci95_pairs"]) for r in drops], color=COLORS[method], capsize=4)
         top.axhline(0, color="gray", linewidth=0.8)
-        top.set(title=f"{family}, seeds {rows[0]['seeds']}\nown minus another environment's context",
+        top.set(title=f"{LABELS[method]}\n{family}, seeds {rows[0]['seeds']}: own minus another environment's context",
                 ylabel="return difference (95% CI, seed x env)")
         sizes = sorted((r for r in rows if r["arm"] == "size"), key=lambda r: r["context_episodes"])
         episodes = [r["context_episodes"] for r in sizes]
         bottom.errorbar(episodes, [r["mean"] for r in sizes], yerr=[_ci(r["ci95_seeds"]) for r in sizes],
-                        color=COLORS["claw"], marker="o", capsize=4)
+                        color=COLORS[method], marker="o", capsize=4)
         bottom.set(xscale="log", xlabel="pi_con episodes in the context", ylabel="offline episode return", title=f"{family}: context size")
         bottom.set_xticks(episodes, [str(k) for k in episodes])
     fig.tight_layout()

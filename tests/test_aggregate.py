@@ -87,14 +87,23 @@ def test_controls_rows_average_environments_per_seed_then_across_seeds(tmp_path)
         (run_dir / "controls.json").write_text(json.dumps(result))
         runs.append({"dir": str(run_dir), "method": "controls", "family": "reach", "size": "F", "rank": 16, "seed": seed,
                      "status": "done", "experiments": ["controls"], "scalars": {}})
-    assert aggregate.problem(runs[0]) == "context controls (experiment controls), in controls.md"
+    assert aggregate.problem(runs[0]) == "context controls (evaluation only), in controls.md"
+    # the decoder runs' controls: a group of their own, whatever their numbers
+    runs.append({**runs[0], "method": "controls_decoder", "experiments": ["decoder"]})
+    assert aggregate.problem(runs[-1]) == "context controls (evaluation only), in controls.md"
+    decoder_rows = [r for r in aggregate.controls_rows(runs) if r["method"] == "claw_decoder"]
+    assert len(decoder_rows) == 5 and all(r["n_seeds"] == 1 and r["seeds"] == "1" for r in decoder_rows)
+    figures.figure_controls(aggregate.controls_rows(runs), str(tmp_path))  # a column per (trained method, family)
+    assert (tmp_path / "controls.png").stat().st_size > 0
+    runs.pop()
+    assert {r["method"] for r in aggregate.controls_rows(runs)} == {"claw"}
     rows = {r["quantity"]: r for r in aggregate.controls_rows(runs)}
     drop = rows["offline: own - another's"]
     assert drop["mean"] == pytest.approx(12.0) and drop["ci95_seeds"] == pytest.approx(mean_ci([11.0, 12.0, 13.0])[1])
     assert drop["n_pairs"] == 9 and drop["ci95_pairs"] == pytest.approx(mean_ci([10.0 + s for s in (1, 2, 3) for _ in range(3)])[1])
     assert list(rows)[-2:] == ["offline: 1-episode own context", "offline: 10-episode own context"]
     assert rows["offline: own context (3 episodes)"]["mean"] == pytest.approx(112.0)
-    assert "| reach | F | 16 | offline: own - another's | 3 | 12.0 |" in aggregate.controls_markdown(aggregate.controls_rows(runs))
+    assert "| claw | reach | F | 16 | offline: own - another's | 3 | 12.0 |" in aggregate.controls_markdown(aggregate.controls_rows(runs))
     assert figures.figure_controls([], str(tmp_path)) == "controls: no finished controls runs"
     assert figures.figure_controls(aggregate.controls_rows(runs), str(tmp_path)) is None and (tmp_path / "controls.png").stat().st_size > 0
 

@@ -167,7 +167,7 @@ def test_family_and_seed_filters_pick_the_runs_a_launcher_starts(tmp_path, capsy
     experiments.main(["exp1", "decoder", "--scale", "learn", "--families", "reach", "--seeds", "2", "3", "--methods", "claw", "claw_decoder",
                       "--dry-run", "--root", str(tmp_path)])
     out = capsys.readouterr().out
-    assert out.startswith("4 runs for exp1 decoder at scale learn")
+    assert out.startswith("4 runs for exp1 decoder at scale learn")  # not the decoder's controls_decoder runs
     assert sorted(line.split("--run-dir ")[1].split()[0].rsplit("/", 1)[1] for line in out.splitlines()[1:]) == [
         f"{method}__reach__F__r16__s{seed}" for method in ("claw", "claw_decoder") for seed in (2, 3)]
 
@@ -302,7 +302,14 @@ def test_learn_recipes_and_budget_training_curves(monkeypatch):
     assert len({r.name for r in budget}) == 4 and all("--train-env-id" in r.command("d") for r in budget)
     exp12 = experiments.plan_runs(["exp1", "exp2"], "learn")
     assert {(r.family, r.size) for r in exp12} == {("reach", "F"), ("walker", "F")} and len(exp12) == 2 * 4 * 3
-    decoder = experiments.plan_runs(["decoder"], "learn")  # Exp 1/2's CLAW runs with --decoder-coef, named apart
+    decoder_and_controls = experiments.plan_runs(["decoder"], "learn")  # Exp 1/2's CLAW runs with --decoder-coef, named apart
+    decoder = [r for r in decoder_and_controls if r.method == "claw_decoder"]
+    controls = experiments.plan_runs(["controls"], "learn")
+    # each followed by the controls experiment's evaluation of its checkpoint
+    assert [(r.method, r.needs, r.extra) for r in decoder_and_controls[len(decoder):]] == [
+        ("controls_decoder", trained.name, r.extra) for trained, r in zip(decoder, controls)]
+    assert [r.command("d")[1:2] + r.command("d")[3:] for r in decoder_and_controls[len(decoder):]] == [
+        r.command("d")[1:2] + r.command("d")[3:] for r in controls]
     claw12 = [r for r in exp12 if r.method == "claw"]
     assert [(r.family, r.seed) for r in decoder] == [(r.family, r.seed) for r in claw12]
     assert all(r.command("d")[1].endswith("claw_tdmpc2.py") and r.command("d")[-2:] == ["--decoder-coef", "1.0"] for r in decoder)
