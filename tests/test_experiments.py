@@ -7,7 +7,7 @@ import pytest
 import scipy.stats
 import torch
 
-from benchmarks import aggregate, context_identifiability, experiments, figures, inspect_adapters
+from benchmarks import aggregate, context_identifiability, decoder_signal, experiments, figures, inspect_adapters
 from common.evaluation import mean_ci
 
 
@@ -275,6 +275,22 @@ def test_context_identifiability_statistics_on_synthetic_contexts():
     separable = labels[:, None] * 10.0 + rng.normal(0, 0.1, (12, 1))
     assert context_identifiability.nearest_centroid_accuracy(separable, labels) == 12
     assert context_identifiability.nearest_centroid_accuracy(rng.normal(size=(12, 1)), labels) < 12
+
+
+def test_decoder_signal_separates_what_the_environment_changes():
+    """Two synthetic environments: the reward shifts with the environment, the dynamics do not (and vice versa)."""
+    rng = np.random.default_rng(0)
+
+    def environment(env_id, reward_shift, dynamics_gain):
+        obs, action = rng.uniform(-1, 1, (1500, 3)).astype(np.float32), rng.uniform(-1, 1, (1500, 1)).astype(np.float32)
+        next_obs = obs + (1.0 + dynamics_gain * env_id) * action + rng.normal(0, 0.2, obs.shape).astype(np.float32)
+        reward = np.sin(next_obs[:, 0]) + reward_shift * env_id + rng.normal(0, 0.2, 1500).astype(np.float32)
+        return {"obs": obs, "action": action, "next_obs": next_obs, "reward": reward}
+
+    goals = decoder_signal.signal([environment(j, reward_shift=1.0, dynamics_gain=0.0) for j in (0, 1)], steps=300)
+    strengths = decoder_signal.signal([environment(j, reward_shift=0.0, dynamics_gain=1.0) for j in (0, 1)], steps=300)
+    assert goals["reward"][3] > 0.5 and abs(goals["next state"][3]) < 0.3
+    assert strengths["next state"][3] > 0.5 and abs(strengths["reward"][3]) < 0.3
 
 
 def test_encoder_probe_learns_a_goal_that_shifts_the_reward():
