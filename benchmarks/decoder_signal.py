@@ -53,32 +53,25 @@ def held_out_mse(x_train, y_train, x_test, y_test, steps: int, seed: int = 0, ba
 def signal(transitions: list[dict], steps: int, test_fraction: float = 0.2, seed: int = 0) -> dict:
     """transitions: one collect_episodes() dict per environment -> {target: (held-out target variance, MSE without id,
     MSE with id, gap)}."""
-    n = len(transitions)
-    columns = np.concatenate([np.c_[data["obs"], data["action"], data["next_obs"], data["reward"],
-                                    np.eye(n, dtype=np.float32)[np.full(len(data["reward"]), env_id)]]
-                              for env_id, data in enumerate(transitions)])
-    order = np.random.default_rng(seed).permutation(len(columns))
-    cut = int(len(columns) * (1 - test_fraction))
-    train, test = columns[order[:cut]], columns[order[cut:]]
-    obs_dim, act_dim = transitions[0]["obs"].shape[1], transitions[0]["action"].shape[1]
-    s, a, s_next = slice(0, obs_dim), slice(obs_dim, obs_dim + act_dim), slice(obs_dim + act_dim, 2 * obs_dim + act_dim)
-    reward, env_id = 2 * obs_dim + act_dim, slice(2 * obs_dim + act_dim + 1, None)
-    targets = {
-        "reward": (np.c_[train[:, s], train[:, a], train[:, s_next]], np.c_[test[:, s], test[:, a], test[:, s_next]],
-                   claw.symlog(torch.as_tensor(train[:, [reward]])).numpy(), claw.symlog(torch.as_tensor(test[:, [reward]])).numpy()),
-        "next state": (np.c_[train[:, s], train[:, a]], np.c_[test[:, s], test[:, a]], train[:, s_next], test[:, s_next]),
-    }
+    pooled = {key: np.concatenate([data[key] for data in transitions]) for key in ("obs", "action", "next_obs", "reward")}
+    env_ids = np.eye(len(transitions), dtype=np.float32)[np.concatenate([np.full(len(d["reward"]), j) for j, d in enumerate(transitions)])]
+    order = np.random.default_rng(seed).permutation(len(env_ids))
+    cut = int(len(order) * (1 - test_fraction))
+    train, test = order[:cut], order[cut:]
+    symlog_reward = claw.symlog(torch.as_tensor(pooled["reward"][:, None])).numpy()
+    targets = {"reward": (np.c_[pooled["obs"], pooled["action"], pooled["next_obs"]], symlog_reward),
+               "next state": (np.c_[pooled["obs"], pooled["action"]], pooled["next_obs"])}
     result = {}
-    for name, (x_train, x_test, y_train, y_test) in targets.items():
+    for name, (inputs, target) in targets.items():
         if name == "next state":  # per-dimension MSE in units of each dimension's spread
-            y_train, y_test = standardise(y_train, y_test)
+            y_train, y_test = standardise(target[train], target[test])
         else:
-            y_train, y_test = torch.as_tensor(y_train), torch.as_tensor(y_test)
+            y_train, y_test = torch.as_tensor(target[train]), torch.as_tensor(target[test])
         mse = {}
         for with_id in (False, True):
-            extra_train, extra_test = (train[:, env_id], test[:, env_id]) if with_id else (train[:, :0], test[:, :0])
-            x_tr, x_te = standardise(np.c_[x_train, extra_train], np.c_[x_test, extra_test])
-            mse[with_id] = held_out_mse(x_tr, y_train, x_te, y_test, steps)
+            x = np.c_[inputs, env_ids] if with_id else inputs
+            x_train, x_test = standardise(x[train], x[test])
+            mse[with_id] = held_out_mse(x_train, y_train, x_test, y_test, steps)
         result[name] = (float(y_test.var(0).mean()), mse[False], mse[True], 1.0 - mse[True] / mse[False])
     return result
 
