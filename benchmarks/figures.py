@@ -263,13 +263,13 @@ def figure_controls(controls, out) -> str | None:
         top.bar([f"{r['protocol']}\n(own: {own[r['protocol']]:.0f})" for r in drops],
                 [r["mean"] for r in drops], yerr=[_ci(r["ci95_pairs"]) for r in drops], color=COLORS[method], capsize=4)
         top.axhline(0, color="gray", linewidth=0.8)
-        top.set(title=f"{LABELS[method]}, {family}, seeds {rows[0]['seeds']}\nown minus another environment's context",
+        top.set(title=f"{LABELS[method]}\n{family}, seeds {rows[0]['seeds']}\nown minus another environment's context",
                 ylabel="return difference (95% CI, seed x env)")
         sizes = sorted((r for r in rows if r["arm"] == "size"), key=lambda r: r["context_episodes"])
         episodes = [r["context_episodes"] for r in sizes]
         bottom.errorbar(episodes, [r["mean"] for r in sizes], yerr=_yerr("return", [r["mean"] for r in sizes], [r["ci95_seeds"] for r in sizes]),
                         color=COLORS[method], marker="o", capsize=4)
-        bottom.set(xscale="log", xlabel="pi_con episodes in the context", ylabel="offline episode return", title=f"{family}: context size")
+        bottom.set(xscale="log", xlabel="pi_con episodes in the context", ylabel="offline return (95% CI, seeds)", title=f"{family}: context size")
         bottom.set_xticks(episodes, [str(k) for k in episodes])
     fig.tight_layout()
     fig.savefig(os.path.join(out, "controls.png"), dpi=120)
