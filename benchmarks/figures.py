@@ -40,16 +40,17 @@ def _ci(value):
     return 0.0 if value is None or math.isnan(value) else value
 
 
-def _interval(metric, means, cis):
-    """(lower, upper) of mean +- CI, cut to what the metric can take (success in [0, 1], returns >= 0: every
-    family's rewards are non-negative): at n = 2 (t = 12.7) a raw interval spans impossible values."""
+def _interval(metric, rows, ci_key="ci95"):
+    """(lowers, uppers) of each row's mean +- CI, cut to what the metric can take (success in [0, 1], returns >= 0:
+    every family's rewards are non-negative): at n = 2 (t = 12.7) a raw interval spans impossible values."""
     top = 1.0 if metric.endswith("success") else math.inf
-    return ([max(0.0, m - _ci(c)) for m, c in zip(means, cis)], [min(top, m + _ci(c)) for m, c in zip(means, cis)])
+    return ([max(0.0, r["mean"] - _ci(r[ci_key])) for r in rows], [min(top, r["mean"] + _ci(r[ci_key])) for r in rows])
 
 
-def _yerr(metric, means, cis):
-    lower, upper = _interval(metric, means, cis)
-    return [[m - lo for m, lo in zip(means, lower)], [hi - m for m, hi in zip(means, upper)]]
+def _yerr(metric, rows, ci_key="ci95"):
+    """_interval as matplotlib's asymmetric yerr."""
+    lower, upper = _interval(metric, rows, ci_key)
+    return [[r["mean"] - lo for r, lo in zip(rows, lower)], [hi - r["mean"] for r, hi in zip(rows, upper)]]
 
 
 def world_model_sizes(size: str, rank: int, obs_dim: int = 24, act_dim: int = 6) -> tuple[int, int, int]:
@@ -107,7 +108,7 @@ def figure_exp1(rows, curves, out) -> str | None:
             if points:
                 x, y = [p["step"] for p in points], [p["mean"] for p in points]
                 ax.plot(x, y, color=COLORS[method], label=LABELS[method])
-                ax.fill_between(x, *_interval(metric, y, [p["ci95"] for p in points]), color=COLORS[method], alpha=0.15)
+                ax.fill_between(x, *_interval(metric, points), color=COLORS[method], alpha=0.15)
         ax.set_xlabel("test-time environment steps")
 
     save_panel_grid(families, "online", draw, os.path.join(out, "exp1.png"))
@@ -125,13 +126,12 @@ def figure_exp2(rows, curves, out) -> str | None:
             points = select(rows, family=family, method=method, metric=metric)
             if points:
                 steps += [p["x"] for p in points]
-                ax.errorbar([p["x"] for p in points], [p["mean"] for p in points],
-                            yerr=_yerr(metric, [p["mean"] for p in points], [p["ci95"] for p in points]),
+                ax.errorbar([p["x"] for p in points], [p["mean"] for p in points], yerr=_yerr(metric, points),
                             color=COLORS[method], label=LABELS[method], marker="o", capsize=3)
         for method in ("claw", "claw_decoder"):  # one hypernet pass each: a band
             for p in select(rows, family=family, method=method, metric=metric):
                 ax.axhline(p["mean"], color=COLORS[method], label=f"{LABELS[method]}, 1 hypernet pass")
-                (lower,), (upper,) = _interval(metric, [p["mean"]], [p["ci95"]])
+                (lower,), (upper,) = _interval(metric, [p])
                 ax.axhspan(lower, upper, color=COLORS[method], alpha=0.15)
         ax.set_xscale("symlog", linthresh=1)
         ax.set_xlim(0, max(steps) * 1.5 + 1)
@@ -152,7 +152,7 @@ def figure_exp3(rows, curves, out) -> str | None:
         points = sorted((world_model_sizes(r["size"], r["rank"])[0], r) for r in cw if r["method"] == method)
         if not points:
             continue
-        ax.errorbar([p for p, _ in points], [r["mean"] for _, r in points], yerr=_yerr("return", [r["mean"] for _, r in points], [r["ci95"] for _, r in points]),
+        ax.errorbar([p for p, _ in points], [r["mean"] for _, r in points], yerr=_yerr("return", [r for _, r in points]),
                     color=COLORS[method], label=LABELS[method], marker="o", capsize=3)
         ratio = [(p, r["mean"] / claw_by_size[r["size"]]) for p, r in points if claw_by_size.get(r["size"])]
         if ratio:
@@ -180,15 +180,15 @@ def figure_exp4(rows, curves, out) -> str | None:
     ranks = [r["rank"] for r in claw]
     percents = [100 * world_model_sizes(size, r["rank"])[2] / world_model for r in claw]
     for ax, x in ((ax_rank, ranks), (ax_pct, percents)):
-        ax.errorbar(x, [r["mean"] for r in claw], yerr=_yerr("return", [r["mean"] for r in claw], [r["ci95"] for r in claw]), color=COLORS["claw"], marker="o", capsize=3, label="CLAW")
+        ax.errorbar(x, [r["mean"] for r in claw], yerr=_yerr("return", claw), color=COLORS["claw"], marker="o", capsize=3, label="CLAW")
     for method in ("film", "concat"):
         for r in select(cw, method=method, size=size):
             ax_rank.axhline(r["mean"], color=COLORS[method], linestyle="--", label=LABELS[method])
-            (lower,), (upper,) = _interval("return", [r["mean"]], [r["ci95"]])
+            (lower,), (upper,) = _interval("return", [r])
             ax_rank.axhspan(lower, upper, color=COLORS[method], alpha=0.1)
             if method == "film":  # FiLM spends a scale and a shift per world-model hidden feature
                 film_percent = 100 * film_parameters(size) / world_model
-                ax_pct.errorbar([film_percent], [r["mean"]], yerr=_yerr("return", [r["mean"]], [r["ci95"]]), color=COLORS[method], marker="s", capsize=3, label="FiLM")
+                ax_pct.errorbar([film_percent], [r["mean"]], yerr=_yerr("return", [r]), color=COLORS[method], marker="s", capsize=3, label="FiLM")
     ax_rank.set(xscale="log", xlabel="LoRA rank", ylabel="episode return", title=f"Cheetah/Walker, size {size}")
     ax_pct.set(xscale="log", xlabel="adapter size (% of world model)", ylabel="episode return")
     for ax in (ax_rank, ax_pct):  # plain numbers at the data points, not 4x10^0 minor ticks
@@ -221,7 +221,7 @@ def figure_exp5(rows, curves, out) -> str | None:
     bars = [("CLAW (joint)", joint[0], COLORS["claw"])] if joint else []
     bars.append(("Post-hoc", posthoc[0], COLORS["posthoc"]))
     fig, ax = plt.subplots(figsize=(3.5, 3.5))
-    ax.bar([b[0] for b in bars], [b[1]["mean"] for b in bars], yerr=_yerr("return", [b[1]["mean"] for b in bars], [b[1]["ci95"] for b in bars]),
+    ax.bar([b[0] for b in bars], [b[1]["mean"] for b in bars], yerr=_yerr("return", [b[1] for b in bars]),
            color=[b[2] for b in bars], capsize=4)
     ax.set(ylabel="Cheetah episode return", title=f"size {size}, rank {rank}")
     fig.tight_layout()
@@ -239,7 +239,7 @@ def figure_budget(training, out) -> str | None:
         points = [r for r in training if (r["family"], r["train_env"]) == (family, env_id)]
         x, y = [p["step"] for p in points], [p["mean"] for p in points]
         ax.plot(x, y, color=COLORS[points[0]["method"]], label=f"{LABELS[points[0]['method']]} (seeds {points[0]['seeds']})")
-        ax.fill_between(x, *_interval("return", y, [p["ci95"] for p in points]), color=COLORS[points[0]["method"]], alpha=0.15)
+        ax.fill_between(x, *_interval("return", points), color=COLORS[points[0]["method"]], alpha=0.15)
         ax.axhline(points[0]["random_policy"], color="gray", linestyle="--", label="random policy")
         ax.set(title=f"{family} env {env_id}, size {points[0]['size']}", xlabel="agent steps", ylabel="training-episode return")
         ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value / 1000:g}k"))
@@ -267,7 +267,7 @@ def figure_controls(controls, out) -> str | None:
                 ylabel="return difference (95% CI, seed x env)")
         sizes = sorted((r for r in rows if r["arm"] == "size"), key=lambda r: r["context_episodes"])
         episodes = [r["context_episodes"] for r in sizes]
-        bottom.errorbar(episodes, [r["mean"] for r in sizes], yerr=_yerr("return", [r["mean"] for r in sizes], [r["ci95_seeds"] for r in sizes]),
+        bottom.errorbar(episodes, [r["mean"] for r in sizes], yerr=_yerr("return", sizes, "ci95_seeds"),
                         color=COLORS[method], marker="o", capsize=4)
         bottom.set(xscale="log", xlabel="pi_con episodes in the context", ylabel="offline return (95% CI, seeds)", title=f"{family}: context size")
         bottom.set_xticks(episodes, [str(k) for k in episodes])

@@ -390,10 +390,10 @@ def test_context_probes_patch_claw_only_while_they_run(monkeypatch):
         context_probes.main(["goal", "bogus"])
 
 
-
 def test_figure_intervals_stay_within_what_the_metric_can_take():
     # at n = 2 (t = 12.7) mean +- CI crosses 0 and 1: the figures cut bands and error bars there
-    lower, upper = figures._interval("online_success", [0.9, 0.1], [0.5, 0.05])
+    lower, upper = figures._interval("online_success", [{"mean": 0.9, "ci95": 0.5}, {"mean": 0.1, "ci95": 0.05}])
     assert lower == pytest.approx([0.4, 0.05]) and upper == pytest.approx([1.0, 0.15])
-    assert figures._interval("offline_return", [100.0], [300.0]) == ([0.0], [400.0])
-    assert figures._yerr("offline_return", [100.0], [float("nan")]) == [[0.0], [0.0]]  # one seed: no interval
+    assert figures._interval("offline_return", [{"mean": 100.0, "ci95": 300.0}]) == ([0.0], [400.0])
+    assert figures._yerr("offline_return", [{"mean": 100.0, "ci95": 300.0}]) == [[100.0], [300.0]]
+    assert figures._yerr("offline_return", [{"mean": 100.0, "ci95_seeds": float("nan")}], "ci95_seeds") == [[0.0], [0.0]]  # one seed
