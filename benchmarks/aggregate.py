@@ -23,7 +23,6 @@ import argparse
 import csv
 import glob
 import json
-import logging
 import math
 import os
 import sys
@@ -33,8 +32,7 @@ import scipy.stats
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
-
+from benchmarks.archive import archive_sweep, read_scalars  # noqa: E402
 from benchmarks.experiments import CONTROLS, SIZE_RANKS, run_is_live  # noqa: E402
 from common.evaluation import mean_ci  # noqa: E402
 
@@ -51,29 +49,21 @@ def eval_tag(phase: str, key: str) -> str:
     return f"eval/{phase}/{'episodic_return' if key == 'return' else key}"
 
 
-def load_runs(root: str) -> list[dict]:
-    """run.json of every run under root, with its scalars as {tag: [(step, value), ...]}."""
-    runs = []
-    # a resumed run's writer starts with purge_step: TensorBoard drops the steps the killed process logged after
-    # its checkpoint, as intended, and warns "Detected out of order event.step" for each such file
-    tensorboard_logger = logging.getLogger("tensorboard")
-    level = tensorboard_logger.level
-    tensorboard_logger.setLevel(logging.ERROR)
-    try:
+def load_runs(roots: str | list[str]) -> list[dict]:
+    """run.json of every run under the roots (sweep directories or archives, benchmarks/archive.py), with its scalars
+    as {tag: [(step, value), ...]}. A run found under several roots counts once: its finished copy, else the first."""
+    found = {}
+    for root in [roots] if isinstance(roots, str) else roots:
         for path in sorted(glob.glob(os.path.join(root, "*", "run.json"))):
             with open(path) as f:
                 run = json.load(f)
             run["dir"] = os.path.dirname(path)
-            events = EventAccumulator(run["dir"], size_guidance={"scalars": 0}).Reload()
-            run["scalars"], run["duplicated"] = {}, []
-            for tag in events.Tags()["scalars"]:
-                steps = [(e.step, e.value) for e in events.Scalars(tag)]
-                if len({step for step, _ in steps}) < len(steps):  # e.g. a resume logged without purge_step
-                    run["duplicated"].append(tag)
-                run["scalars"][tag] = sorted(dict(steps).items())  # the last value written at a step wins, as in TensorBoard
-            runs.append(run)
-    finally:
-        tensorboard_logger.setLevel(level)
+            name = os.path.basename(run["dir"])
+            if name not in found or (found[name].get("status") != "done" and run.get("status") == "done"):
+                found[name] = run
+    runs = [found[name] for name in sorted(found)]
+    for run in runs:
+        run["scalars"], run["duplicated"] = read_scalars(run["dir"])
     return runs
 
 
@@ -410,13 +400,21 @@ def markdown(rows: list[dict], problems: list[tuple[str, str]], duplicated: list
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("root", help="sweep directory, e.g. runs/sweeps/cpu")
+    parser.add_argument("roots", nargs="+", metavar="root",
+                        help="sweep directories or archives (benchmarks/archive.py), e.g. runs/sweeps/cpu; the tables go to the first")
+    parser.add_argument("--archive", default=None, metavar="DIR",
+                        help="also read this archive, and first archive there every finished run of the roots (e.g. results/learn/runs)")
     parser.add_argument("--exp4-size", default="F", choices=list(SIZE_RANKS),
                         help="model size of the Exp 3/4/5 claims (rank: the size's Exp 3 rank); the cpu scale's is H")
     cli = parser.parse_args(argv)
-    runs = load_runs(cli.root)
+    cli.root = cli.roots[0]
+    if cli.archive:
+        for root in [r for r in cli.roots if os.path.abspath(r) != os.path.abspath(cli.archive)]:
+            print(f"archived {archive_sweep(root, cli.archive)} finished runs of {root} in {cli.archive}")
+        cli.roots.append(cli.archive)
+    runs = load_runs(cli.roots)
     if not runs:
-        raise SystemExit(f"error: no run.json under {cli.root!r}; run benchmarks/experiments.py first")
+        raise SystemExit(f"error: no run.json under {' '.join(map(repr, cli.roots))}; run benchmarks/experiments.py first")
     rows, curves, problems = summarize(runs)
     write_csv(os.path.join(cli.root, "summary.csv"), rows)
     write_csv(os.path.join(cli.root, "curves.csv"), curves)

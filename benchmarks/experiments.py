@@ -11,7 +11,9 @@
 Every run is an ordinary script invocation with its own --run-dir under runs/sweeps/{scale}/, its
 output in stdout.log there; local runs it on this machine, slurm as one task of a job array
 (submitit), requeued on preemption or time-out to resume from its checkpoint. The launcher writes
-run.json beside each run (method, family, size, rank, seed, experiments, command, status).
+run.json beside each run (method, family, size, rank, seed, experiments, command, status). With --archive DIR
+(e.g. results/learn/runs, committed) each finished run's measurements, not its checkpoint, are also copied to DIR
+(benchmarks/archive.py), and the runs DIR holds are skipped: losing the sweep directory loses no finished run.
 The process that runs a run holds run.lock in its directory (flock) for the run's lifetime, so a
 restarted launcher skips runs that are "done" or live (lock held) and resumes, with --resume, those
 that died (lock free, checkpoint present); it prints a finished run whose recorded command differs
@@ -62,6 +64,9 @@ from dataclasses import dataclass, field
 import submitit
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)  # run as a script, benchmarks/ is not yet a package on the path
+from benchmarks.archive import archive_run, is_archived  # noqa: E402
+
 SCRIPTS = {m: f"{m}_tdmpc2.py" for m in ("claw", "dr", "st", "oracle", "film", "concat", "posthoc")}
 SCRIPTS["controls"] = os.path.join("benchmarks", "context_controls.py")  # evaluation only: Run.command
 # experiment decoder: CLAW with its reward decoder on u_con (a departure from the paper), a method of its own in the tables
@@ -318,8 +323,9 @@ class RunJob(submitit.helpers.Checkpointable):
     Returns the run's final status, or "busy" when another live process owns the run.
     """
 
-    def __init__(self, die_with_launcher: bool = False):
+    def __init__(self, die_with_launcher: bool = False, archive: str | None = None):
         self.process = None
+        self.archive = archive  # where a finished run's measurements are copied (benchmarks/archive.py), or None
         # local runs end with their launcher (SIGTERM on its death, via setpriv where it exists), as a
         # run that outlived it would finish unrecorded; SLURM ends a job's processes itself
         self.prefix = ["setpriv", "--pdeathsig", "TERM"] if die_with_launcher and shutil.which("setpriv") else []
@@ -356,6 +362,11 @@ class RunJob(submitit.helpers.Checkpointable):
             status = "interrupted" if _STOP.is_set() else "done" if returncode == 0 else "failed"
             write_status(run_dir, run, command, status, resumed=bool(resume), returncode=returncode,
                          seconds=round(time.time() - start, 1), **where)
+            if status == "done" and self.archive:
+                try:
+                    archive_run(run_dir, self.archive)
+                except (OSError, ValueError) as error:  # the run is done all the same; benchmarks/archive.py can redo this
+                    print(f"warning: {run.name} not archived: {error}", flush=True)
             return status
         finally:
             os.close(fd)
@@ -384,7 +395,7 @@ class RunJob(submitit.helpers.Checkpointable):
         if record.get("status") == "running":
             write_status(run_dir, run, run.command(run_dir, cuda), "requeued",
                          **{k: record[k] for k in ("slurm_job", "host") if k in record})
-        return submitit.helpers.DelayedSubmission(RunJob(), run, run_dir, env, cuda, lock_wait_s)
+        return submitit.helpers.DelayedSubmission(RunJob(archive=self.archive), run, run_dir, env, cuda, lock_wait_s)
 
 
 def slurm_queued(job_id: str | None) -> bool:
@@ -398,11 +409,14 @@ def slurm_queued(job_id: str | None) -> bool:
     return listed.returncode == 0 and bool(listed.stdout.strip())
 
 
-def pending_runs(runs: list[Run], root: str, cuda: bool = False) -> list[tuple[Run, str]]:
+def pending_runs(runs: list[Run], root: str, cuda: bool = False, archive: str | None = None) -> list[tuple[Run, str]]:
     """The runs to start now, printing why each other run is skipped."""
     pending = []
     for run in runs:
         run_dir = os.path.join(root, run.name)
+        if is_archived(archive, run.name):
+            print(f"skip (archived) {run.name}")
+            continue
         command = run.command(run_dir, cuda)
         record = read_status(run_dir)
         if record and recorded_command(record) != command[1:]:  # the interpreter may differ between machines
@@ -418,7 +432,8 @@ def pending_runs(runs: list[Run], root: str, cuda: bool = False) -> list[tuple[R
             print(f"skip (queued {record['slurm_job']}) {run.name}")
             continue
         if run.needs and read_status(os.path.join(root, run.needs)).get("status") != "done":
-            print(f"wait (needs {run.needs} done) {run.name}")
+            lost = " (archived without its checkpoint: delete it from the archive to retrain it)" if is_archived(archive, run.needs) else ""
+            print(f"wait (needs {run.needs} done){lost} {run.name}")
             continue
         resume = resume_args(run_dir)
         print(("resume " if resume else "run    ") + shlex.join(command + resume))
@@ -431,11 +446,11 @@ def pending_runs(runs: list[Run], root: str, cuda: bool = False) -> list[tuple[R
 
 
 def launch(runs: list[Run], root: str, workers: int | None, dry_run: bool, launcher: str = "local",
-           slurm: dict | None = None) -> int:
-    """Run (local) or submit (slurm) every run not finished nor live; returns the number that failed."""
+           slurm: dict | None = None, archive: str | None = None) -> int:
+    """Run (local) or submit (slurm) every run not finished nor live nor archived; returns the number that failed."""
     slurm = slurm or {}
     cuda = slurm.get("gpus_per_task", 0) > 0
-    pending = pending_runs(runs, root, cuda)
+    pending = pending_runs(runs, root, cuda, archive)
     if dry_run or not pending:
         return 0
     # small networks: cores/workers BLAS/OpenMP threads per run, or parallel runs thrash each
@@ -446,14 +461,15 @@ def launch(runs: list[Run], root: str, workers: int | None, dry_run: bool, launc
         threads = os.environ.get("OMP_NUM_THREADS") or str(max(1, (os.cpu_count() or 1) // (workers or 1)))
     env = {"OMP_NUM_THREADS": threads, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "disable")}
     if launcher == "slurm":
-        return submit_slurm(pending, root, env, cuda, workers, slurm)
+        return submit_slurm(pending, root, env, cuda, workers, slurm, archive)
     started = {run.name for run, _ in pending}
     waiting = [(run, os.path.join(root, run.name)) for run in runs if run.needs and run.name not in started
-               and read_status(os.path.join(root, run.name)).get("status") != "done"]
-    return run_local(pending, env, workers or 1, waiting)
+               and read_status(os.path.join(root, run.name)).get("status") != "done" and not is_archived(archive, run.name)]
+    return run_local(pending, env, workers or 1, waiting, archive)
 
 
-def run_local(pending: list[tuple[Run, str]], env: dict, workers: int, waiting: list[tuple[Run, str]] = ()) -> int:
+def run_local(pending: list[tuple[Run, str]], env: dict, workers: int, waiting: list[tuple[Run, str]] = (),
+              archive: str | None = None) -> int:
     """Runs on this machine, `workers` at a time; a waiting run (Run.needs) joins the front of the queue as soon
     as the run it needs is done, so one launcher call runs the evaluations of the checkpoints it trains.
 
@@ -479,7 +495,7 @@ def run_local(pending: list[tuple[Run, str]], env: dict, workers: int, waiting: 
             while running or (queue and not _STOP.is_set()):
                 while queue and len(running) < workers and not _STOP.is_set():
                     run, run_dir = queue.pop(0)
-                    job = RunJob(die_with_launcher=True)
+                    job = RunJob(die_with_launcher=True, archive=archive)
                     running[pool.submit(job, run, run_dir, env)] = (run, job)
                 done, _ = concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
                 for future in done:
@@ -503,7 +519,7 @@ def run_local(pending: list[tuple[Run, str]], env: dict, workers: int, waiting: 
 
 
 def submit_slurm(pending: list[tuple[Run, str]], root: str, env: dict, cuda: bool, workers: int | None,
-                 slurm: dict) -> int:
+                 slurm: dict, archive: str | None = None) -> int:
     """Submits the runs as one SLURM job array and returns; each array task runs RunJob on its node."""
     executor = submitit.SlurmExecutor(folder=os.path.join(root, ".submitit", "%j"), max_num_timeout=slurm.get("max_requeues", 3))
     parameters = {"job_name": "claw-sweep", "time": slurm.get("time", 60), "cpus_per_task": slurm.get("cpus_per_task", 1),
@@ -519,7 +535,7 @@ def submit_slurm(pending: list[tuple[Run, str]], root: str, env: dict, cuda: boo
     executor.update_parameters(**parameters)
     runs, run_dirs = zip(*pending)
     # a requeued job may start while the killed one's processes are still being reaped: wait for its lock
-    jobs = executor.map_array(RunJob(), runs, run_dirs, [env] * len(runs), [cuda] * len(runs), [120.0] * len(runs))
+    jobs = executor.map_array(RunJob(archive=archive), runs, run_dirs, [env] * len(runs), [cuda] * len(runs), [120.0] * len(runs))
     for (run, run_dir), job in zip(pending, jobs):
         write_status(run_dir, run, run.command(run_dir, cuda), "queued", slurm_job=job.job_id,
                      slurm_log=str(job.paths.stdout))
@@ -555,6 +571,10 @@ def main(argv=None):
     parser.add_argument("--families", nargs="+", default=None, metavar="FAMILY",
                         help="only these families' runs (as run names spell them: reach, walker, cheetah_walker, ...)")
     parser.add_argument("--seeds", nargs="+", type=int, default=None, metavar="SEED", help="only these seeds' runs")
+    parser.add_argument("--archive", default=None, metavar="DIR",
+                        help="copy each finished run's measurements (not its checkpoint) to DIR, e.g. results/learn/runs, and skip"
+                             " the runs DIR holds: commit DIR, and a sweep directory lost with its machine loses no finished run"
+                             " (benchmarks/archive.py)")
     parser.add_argument("--dry-run", action="store_true", help="list the commands and exit")
     group = parser.add_argument_group("slurm", "options of --launcher slurm")
     group.add_argument("--partition", default=None)
@@ -609,14 +629,14 @@ def main(argv=None):
     runs = [r for r in planned if (cli.methods is None or r.method in cli.methods) and (cli.families is None or r.family in cli.families)
             and (cli.seeds is None or r.seed in cli.seeds)]
     print(f"{len(runs)} runs for {' '.join(cli.experiments)} at scale {cli.scale} in {root}")
-    failed = launch(runs, os.path.abspath(root), cli.workers, cli.dry_run, cli.launcher, slurm)
+    archive = os.path.abspath(cli.archive) if cli.archive else None
+    failed = launch(runs, os.path.abspath(root), cli.workers, cli.dry_run, cli.launcher, slurm, archive)
     if failed:
         raise SystemExit(f"{failed} run(s) failed; see their stdout.log and run.json")
 
 
 if __name__ == "__main__":
     # run through the package module, so that the jobs pickle RunJob as benchmarks.experiments.RunJob
-    sys.path.insert(0, REPO)
     from benchmarks import experiments
 
     experiments.main()

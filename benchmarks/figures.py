@@ -278,12 +278,13 @@ def figure_controls(controls, out) -> str | None:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("root", help="sweep directory, e.g. runs/sweeps/cpu")
-    parser.add_argument("--out", default=None, help="output directory (default: root)")
+    parser.add_argument("roots", nargs="+", metavar="root",
+                        help="sweep directories or archives (benchmarks/archive.py), e.g. runs/sweeps/cpu results/learn/runs")
+    parser.add_argument("--out", default=None, help="output directory (default: the first root)")
     cli = parser.parse_args(argv)
-    out = cli.out or cli.root
+    out = cli.out or cli.roots[0]
     os.makedirs(out, exist_ok=True)
-    runs = load_runs(cli.root)
+    runs = load_runs(cli.roots)
     rows, curves, problems = summarize(runs)
     for dir_, why in problems:
         print(f"not aggregated: {os.path.basename(dir_)}: {why}")

@@ -202,7 +202,8 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     assert len(runs) == 2
     control = experiments.recipe("controls", "smoke")[0]  # evaluates runs[0]'s checkpoint: waits for it
     assert control.needs == runs[0].name
-    assert experiments.launch(runs + [control], str(tmp_path), workers=2, dry_run=False) == 0
+    archive = str(tmp_path / "archive")
+    assert experiments.launch(runs + [control], str(tmp_path), workers=2, dry_run=False, archive=archive) == 0
     out = capsys.readouterr().out  # the control waits, then runs in the same call once its checkpoint is done
     assert f"wait (needs {runs[0].name} done) {control.name}" in out and f"ready        {control.name}" in out
     assert all(json.load(open(tmp_path / r.name / "run.json"))["status"] == "done" for r in runs + [control])
@@ -222,6 +223,18 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     assert sorted(result["size"]) == ["1", "2"] and sorted(result["swap"]["own"]["offline"]) == [str(j) for j in range(6)]
     assert "## Context size" in (tmp_path / control.name / "controls.md").read_text()
     assert str(tmp_path / control.name) in dict(aggregate.summarize(aggregate.load_runs(str(tmp_path)))[2])  # not a training run
+    # each finished run was archived as it ended: the archive alone aggregates to the same tables, and a launcher
+    # whose sweep directory is gone (a lost machine) reruns nothing it holds
+    assert sorted(os.listdir(archive)) == sorted(r.name for r in runs + [control])
+    assert sorted(os.listdir(os.path.join(archive, control.name))) == ["controls.json", "controls.md", "run.json", "scalars.json"]
+    sweep_runs, archived_runs = aggregate.load_runs(str(tmp_path)), aggregate.load_runs(archive)
+    assert aggregate.summarize(archived_runs)[:2] == aggregate.summarize(sweep_runs)[:2]
+    assert repr(aggregate.controls_rows(archived_runs)) == repr(aggregate.controls_rows(sweep_runs)) != "[]"  # repr: nan == nan
+    assert [r["dir"] for r in aggregate.load_runs([str(tmp_path / "lost"), archive, str(tmp_path)])] == [
+        os.path.join(archive, r.name) for r in sorted(runs + [control], key=lambda r: r.name)]  # each run once
+    assert experiments.launch(runs + [control], str(tmp_path / "lost"), workers=1, dry_run=False, archive=archive) == 0
+    out = capsys.readouterr().out
+    assert all(f"skip (archived) {r.name}" in out for r in runs + [control]) and not (tmp_path / "lost").exists()
     # a CLAW-only sweep still draws its curves
     fig_rows = [dict(r, method="dr") for r in curves]
     assert figures.figure_exp1(rows, curves + fig_rows, str(tmp_path)) is None
