@@ -1,7 +1,7 @@
 """What a finished sweep run measured, kept without its checkpoint in a directory small enough to commit.
 
 A sweep directory lives on one machine, beside multi-megabyte checkpoints. When the machine is lost, so is every
-finished run's measurement (this happened between the ninth and tenth sessions: 25 finished runs gone, only their
+finished run's measurement (this happened between the ninth and tenth sessions: 23 finished runs gone, only their
 aggregated tables left, no per-seed values to pool with new seeds). An archived run is its run.json, its
 TensorBoard scalars as JSON (scalars.json) and, for the context controls, controls.json and controls.md: tens of
 kilobytes. `aggregate.py` and `figures.py` read an archive like a sweep directory, and
