@@ -226,7 +226,7 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     # each finished run was archived as it ended: the archive alone aggregates to the same tables, and a launcher
     # whose sweep directory is gone (a lost machine) reruns nothing it holds
     assert sorted(os.listdir(archive)) == sorted(r.name for r in runs + [control])
-    assert sorted(os.listdir(os.path.join(archive, control.name))) == ["controls.json", "controls.md", "run.json", "scalars.json"]
+    assert sorted(os.listdir(os.path.join(archive, control.name))) == ["controls.json", "controls.md", "run.json", "scalars.json", "stdout.log"]
     sweep_runs, archived_runs = aggregate.load_runs(str(tmp_path)), aggregate.load_runs(archive)
     assert aggregate.summarize(archived_runs)[:2] == aggregate.summarize(sweep_runs)[:2]
     assert repr(aggregate.controls_rows(archived_runs)) == repr(aggregate.controls_rows(sweep_runs)) != "[]"  # repr: nan == nan
