@@ -864,12 +864,20 @@ def load_checkpoint(path, model, optimizers=None, scale=None, replay=None, resto
 def evaluate(model, scale, layout, n_adapt, discount, writer, device, args: Args, progress_path: str | None = None) -> dict:
     model.eval().requires_grad_(False)  # the base is frozen: only the adapters phi are optimised
     current = {"weights": model.base_weights(), "mean": None}
+    # One phi, Adam and Q scale for every environment, reset in place: the compiled adapt_step guards on these
+    # objects, so fresh ones per environment recompiled it until dynamo's recompile limit sent it back to eager.
+    phi = torch.zeros(n_adapt, device=device, requires_grad=True)
+    current.update(phi=phi, optimizer=torch.optim.Adam([phi], lr=args.learning_rate), scale=copy.deepcopy(scale))
 
     def reset_adapters(context):
-        """Fresh adapters (a zero update), their Adam, a copy of the pretrained Q scale, the context data."""
-        phi = lora_template(layout, n_adapt).to(device).requires_grad_(True)
-        current.update(phi=phi, optimizer=torch.optim.Adam([phi], lr=args.learning_rate), scale=copy.deepcopy(scale),
-                       replay=context_replay(context, device, args), weights=model.base_weights())
+        """Fresh adapters (a zero update), a fresh Adam, the pretrained Q scale, the context data."""
+        with torch.no_grad():
+            phi.copy_(lora_template(layout, n_adapt))
+            for moments in current["optimizer"].state.values():  # step 0 and zero moments: exactly a new Adam
+                for value in moments.values():
+                    value.zero_()
+            current["scale"].value.copy_(scale.value)
+        current.update(replay=context_replay(context, device, args), weights=model.base_weights())
 
     def adapt(context, steps: int = 1):
         for _ in range(steps):

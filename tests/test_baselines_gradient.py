@@ -91,6 +91,27 @@ def test_end_to_end_pretraining_and_both_protocols(name, pretrained):
     assert [step for step, _ in logged["eval/online/episodic_return"]] == [100]  # test-time step of episode end
 
 
+@pytest.mark.parametrize("name", list(SCRIPTS))
+def test_every_environment_adapts_from_a_fresh_adam_on_the_same_objects(name, pretrained, tmp_path):
+    """The compiled adapt_step guards on phi, its Adam and the Q scale: evaluation reuses one of each (new ones per
+    environment recompiled it to dynamo's limit), and resets them so each adaptation starts at Adam step 0."""
+    script, (args, _, _) = SCRIPTS[name], pretrained(name)
+    seen, adapt_step = [], script.adapt_step
+
+    def recording_adapt_step(model, phi, optimizer, scale, *a, **k):
+        adam = optimizer.state.get(phi)
+        seen.append((id(phi), id(optimizer), id(scale), int(adam["step"]) if adam else 0))
+        return adapt_step(model, phi, optimizer, scale, *a, **k)
+
+    eval_args = dataclasses.replace(args, eval_only=True, checkpoint=os.path.join(args.run_dir, "checkpoint.pt"),
+                                    run_dir=str(tmp_path / "eval"), online_eval_steps=0, offline_adapt_steps=(3,))
+    with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(io.StringIO()):
+        mp.setattr(script, "adapt_step", recording_adapt_step)
+        script.main(eval_args)
+    assert len({tuple(ids) for *ids, _ in seen}) == 1
+    assert [step for *_, step in seen] == [0, 1, 2] * 6
+
+
 def test_eval_only_restores_q_scale_and_takes_any_rank(pretrained, tmp_path):
     args, _, _ = pretrained("dr")
     checkpoint = os.path.join(args.run_dir, "checkpoint.pt")
