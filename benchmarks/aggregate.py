@@ -181,13 +181,18 @@ def training_curves(runs: list[dict], window: int = 2500) -> list[dict]:
     return rows
 
 
+def ci_cell(half: float) -> str:
+    """A table's CI cell: a single sample has no interval (mean_ci's NaN), said in words."""
+    return "none (one sample)" if math.isnan(half) else f"± {half:.1f}"
+
+
 def training_markdown(rows: list[dict]) -> str:
     lines = ["| method | family | env | size | agent steps up to | seeds | mean training-episode return | 95% CI | x random policy |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         ratio = r["mean"] / r["random_policy"] if r["random_policy"] > 0 else float("nan")
         lines.append(f"| {r['method']} | {r['family']} | {r['train_env']} | {r['size']} | {r['step']} | {r['n']} | {r['mean']:.1f} | "
-                     f"± {r['ci95']:.1f} | {ratio:.1f} (random {r['random_policy']:.1f}) |")
+                     f"{ci_cell(r['ci95'])} | {ratio:.1f} (random {r['random_policy']:.1f}) |")
     return "\n".join(lines) + "\n"
 
 
@@ -236,7 +241,7 @@ def controls_markdown(rows: list[dict]) -> str:
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['method']} | {r['family']} | {r['size']} | {r['rank']} | {r['quantity']} | {r['n_seeds']} | {r['mean']:.1f} | "
-                     f"± {r['ci95_seeds']:.1f} | {r['n_pairs']} | ± {r['ci95_pairs']:.1f} |")
+                     f"{ci_cell(r['ci95_seeds'])} | {r['n_pairs']} | {ci_cell(r['ci95_pairs'])} |")
     return "\n".join(lines) + "\n"
 
 
@@ -389,7 +394,7 @@ def markdown(rows: list[dict], problems: list[tuple[str, str]], duplicated: list
     for r in rows:
         x = "" if r["x"] is None else r["x"]
         lines.append(f"| {r['method']} | {r['family']} | {r['size']} | {r['rank']} | {r['metric']} | {x} | {r['n']} | "
-                     f"{r['mean']:.1f} | ± {r['ci95']:.1f} |")
+                     f"{r['mean']:.1f} | {ci_cell(r['ci95'])} |")
     if problems:
         lines += ["", "Runs not aggregated:", ""] + [f"- `{os.path.basename(d)}`: {why}" for d, why in problems]
     if duplicated:

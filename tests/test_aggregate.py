@@ -93,6 +93,8 @@ def test_controls_rows_average_environments_per_seed_then_across_seeds(tmp_path)
     assert aggregate.problem(runs[-1]) == "context controls (evaluation only), in controls.md"
     decoder_rows = [r for r in aggregate.controls_rows(runs) if r["method"] == "claw_decoder"]
     assert len(decoder_rows) == 5 and all(r["n_seeds"] == 1 and r["seeds"] == "1" for r in decoder_rows)
+    one_seed = aggregate.controls_markdown(decoder_rows)  # one seed: no interval across seeds, one across its environments
+    assert "nan" not in one_seed and "| none (one sample) | 3 | ± " in one_seed
     figures.figure_controls(aggregate.controls_rows(runs), str(tmp_path))  # a column per (trained method, family)
     assert (tmp_path / "controls.png").stat().st_size > 0
     runs.pop()
