@@ -147,8 +147,11 @@ released=
 for i in $(seq 600); do
     state=$(timeout 10 squeue -h -o "%T %r" -j "$job" 2>/dev/null || true)
     [ -z "$state" ] && break
-    if [ -z "$released" ] && [ "$state" = "PENDING BeginTime" ]; then
-        # SLURM holds a requeued job back for two minutes: start it now
+    if [ -z "$released" ] && [ "$state" = "PENDING BeginTime" ] && ! pgrep -f -- "--run-dir $run_dir( |$)" >/dev/null; then
+        # SLURM holds a requeued job back for two minutes: start it now, once the first instance has left the node
+        # and a few seconds after the kill (slurmd refuses a relaunch whose credential dates from the second it
+        # revoked the old one: "Job credential revoked"; seen once under load)
+        sleep 3
         timeout 10 scontrol update JobId="$job" StartTime=now && released=1
     fi
     [ "$i" = 600 ] && { echo "slurm_ci: the requeued job still runs after 10 min" >&2; squeue; exit 1; }
