@@ -239,7 +239,8 @@ def _without_sweep(extra: list) -> list:
 
 
 def plan_runs(experiments: list[str], scale: str) -> list[Run]:
-    """All runs of the experiments, each distinct run once (shared runs list every experiment); runs that need
+    """All runs of the experiments, each distinct run once (shared runs list every experiment), seed-major across
+    the experiments (a sweep cut short holds every experiment at n seeds before any at n + 1); runs that need
     another run's checkpoint last."""
     unique: dict[str, Run] = {}
     for experiment in experiments:
@@ -248,7 +249,7 @@ def plan_runs(experiments: list[str], scale: str) -> list[Run]:
                 unique[run.name].experiments.append(experiment)
             else:
                 unique[run.name] = run
-    return sorted(unique.values(), key=lambda run: run.needs is not None)  # stable: the recipes' order otherwise
+    return sorted(unique.values(), key=lambda run: (run.needs is not None, run.seed))  # stable: the recipes' order otherwise
 
 
 def read_status(run_dir: str) -> dict:

@@ -348,6 +348,11 @@ def test_learn_recipes_and_budget_training_curves(monkeypatch):
     assert sorted({(r.method, r.rank) for r in exp45}) == [("claw", 1), ("claw", 4), ("claw", 8), ("claw", 16), ("concat", 8),
                                                             ("film", 8), ("posthoc", 8)]
     assert len(exp45) == 7 * 3 and all(r.size == "F" and "40000" in r.extra for r in exp45)
+    # seed-major across experiments: every experiment's first seed before any second seed
+    issue14 = experiments.plan_runs(["exp4", "exp5", "exp1", "exp2", "controls"], "learn")
+    seed1 = [r for r in issue14 if r.seed == 1 and r.needs is None]
+    assert [r.seed for r in issue14 if r.needs is None] == sorted(r.seed for r in issue14 if r.needs is None)
+    assert {m for r in seed1 for m in r.experiments} == {"exp1", "exp2", "exp4", "exp5"}
     without_budget = {k: v for k, v in experiments.SCALES["learn"].items() if k != "exp345"}
     monkeypatch.setitem(experiments.SCALES, "learn", without_budget)
     with pytest.raises(SystemExit, match="waits for its per-embodiment budget"):
