@@ -7,7 +7,10 @@ means the adapters do not depend on the task. Two sources side by side:
   fresh          new pi_con contexts (--episodes each), as at test time: what adaptation can use;
   training pool  draws from the checkpoint's own pretraining context pool, as pretraining draws them.
 A training ratio far above the fresh one means the hypernetwork keys on which episodes the pool
-holds (a shortcut that does not exist at test time), not on the environment.
+holds (a shortcut that does not exist at test time), not on the environment. It also prints what the
+planner sees: the merged LoRA update A B of each adapted layer relative to the layer's base weight, and
+how far the environments' merged updates are apart (a near-zero or environment-independent update is
+a CLAW that plans with its base weights, whatever phi's norm).
 
     python benchmarks/inspect_adapters.py runs/<run>/checkpoint.pt [--episodes 3] [--draws 4]
 """
@@ -16,6 +19,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import itertools
+import math
 import os
 import sys
 
@@ -36,6 +40,21 @@ def between_within(values: dict) -> tuple[float, float, float]:
     same = torch.stack([(values[e, a] - values[e, b]).norm() for e in envs for a, b in itertools.combinations(draws, 2)]).mean()
     other = torch.stack([(values[a, d] - values[b, d]).norm() for a, b in itertools.combinations(envs, 2) for d in draws]).mean()
     return float(same), float(other), float(other / same.clamp_min(1e-12))
+
+
+def merged_update_sizes(model, phis: list, layout) -> tuple[list[float], list[float]]:
+    """Per adapted layer: ||A B|| / ||W0|| of phis[0]'s merged update, and the largest ||A B (phi) - A B (phis[0])|| / ||W0||
+    over the other phis. A B is formed from phi's slices as adapted_weights forms it, not as (W0 + A B) - W0: float32
+    round-off of that difference (~1e-7 of W0) would hide the updates measured here."""
+    base = model.base_weights()
+    sizes, spreads = [], []
+    for name, layer, a_shape, b_shape, offset in layout:
+        mid = offset + math.prod(a_shape)
+        updates = [phi[offset:mid].view(a_shape) @ phi[mid : mid + math.prod(b_shape)].view(b_shape) for phi in phis]
+        scale = base[name][layer].norm()
+        sizes.append(float(updates[0].norm() / scale))
+        spreads.append(max((float((u - updates[0]).norm() / scale) for u in updates[1:]), default=0.0))
+    return sizes, spreads
 
 
 def input_sensitivity(encoder, contexts: list, obs_dim: int, act_dim: int) -> dict:
@@ -88,6 +107,10 @@ def main(argv=None):
         phi_norm = torch.stack([hypernet(fresh[e, 0])[:n_wm].norm() for e in range(n)]).mean()
         print(f"||template (world model)|| = {hypernet.template[:n_wm].norm():.4f}, "
               f"||phi (world model)|| = {phi_norm:.4f} (template + generated delta, mean over environments)")
+        sizes, spreads = merged_update_sizes(model, [hypernet(fresh[e, 0]) for e in range(n)], layout)
+        print(f"merged update ||A B|| / ||W0|| over the {len(sizes)} adapted layers (environment 0, fresh context): median "
+              f"{sorted(sizes)[len(sizes) // 2]:.2e}, max {max(sizes):.2e}; largest ||A B (env e) - A B (env 0)|| / ||W0||: "
+              f"median {sorted(spreads)[len(spreads) // 2]:.2e}, max {max(spreads):.2e}")
         for source, contexts in (("fresh", fresh), ("training pool", training)):
             embeddings = {key: hypernet.encoder(rows) for key, rows in contexts.items()}
             adapters = {key: hypernet(rows)[:n_wm] - hypernet.template[:n_wm] for key, rows in contexts.items()}

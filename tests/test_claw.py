@@ -259,6 +259,21 @@ def test_context_pool_has_no_buffer_identity_shortcut():
     assert between_within(resamples)[2] > 2.0  # measured 2.35-2.62
 
 
+def test_merged_update_sizes_measure_what_adapted_weights_adds():
+    from benchmarks.inspect_adapters import merged_update_sizes
+
+    torch.manual_seed(0)
+    args, model, hypernet, layout, *_ = build(obs_dim=39, act_dim=4, size="I", rank=2)
+    model = model.double()
+    phi = torch.randn(len(hypernet.template), dtype=torch.float64)
+    sizes, spreads = merged_update_sizes(model, [phi, 2 * phi], layout)
+    base, merged = model.base_weights(), claw.adapted_weights(model, phi, layout)
+    expected = [float((merged[name][layer] - base[name][layer]).norm() / base[name][layer].norm()) for name, layer, *_ in layout]
+    assert sizes == pytest.approx(expected, rel=1e-9) and min(sizes) > 0
+    assert spreads == pytest.approx([3 * s for s in sizes], rel=1e-9)  # 2 phi doubles A and B: 4 A B
+    assert merged_update_sizes(model, [phi], layout)[1] == [0.0] * len(layout)
+
+
 def test_discount_is_the_papers_unless_the_heuristic_is_asked_for():
     assert claw.default_discount(claw.Args(), 100) == 0.99
     assert claw.default_discount(claw.Args(discount_heuristic=True), 100) == 0.95

@@ -215,7 +215,7 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     # the identifiability diagnostic reads a sweep's CLAW checkpoint
     inspect_adapters.main([str(tmp_path / runs[0].name / "checkpoint.pt"), "--episodes", "1"])
     out = capsys.readouterr().out
-    assert "delta phi (world model)" in out and "gradient norms of one world-model loss" in out
+    assert "delta phi (world model)" in out and "merged update" in out and "gradient norms of one world-model loss" in out
     assert experiments.launch(runs + [control], str(tmp_path), workers=1, dry_run=False) == 0  # a second call: nothing left
     out = capsys.readouterr().out
     assert f"skip (done)  {runs[0].name}" in out and f"skip (done)  {control.name}" in out and "ready" not in out
