@@ -104,10 +104,11 @@ def main(argv=None):
     print(f"{cli.checkpoint}: family {args.family}, size {args.model_size}, rank {args.rank}; "
           f"{cli.draws} contexts per environment and source")
     with torch.no_grad():
-        phi_norm = torch.stack([hypernet(fresh[e, 0])[:n_wm].norm() for e in range(n)]).mean()
+        phis = [hypernet(fresh[e, 0]) for e in range(n)]
+        phi_norm = torch.stack([phi[:n_wm].norm() for phi in phis]).mean()
         print(f"||template (world model)|| = {hypernet.template[:n_wm].norm():.4f}, "
               f"||phi (world model)|| = {phi_norm:.4f} (template + generated delta, mean over environments)")
-        sizes, spreads = merged_update_sizes(model, [hypernet(fresh[e, 0]) for e in range(n)], layout)
+        sizes, spreads = merged_update_sizes(model, phis, layout)
         print(f"merged update ||A B|| / ||W0|| over the {len(sizes)} adapted layers (environment 0, fresh context): median "
               f"{sorted(sizes)[len(sizes) // 2]:.2e}, max {max(sizes):.2e}; largest ||A B (env e) - A B (env 0)|| / ||W0||: "
               f"median {sorted(spreads)[len(spreads) // 2]:.2e}, max {max(spreads):.2e}")
