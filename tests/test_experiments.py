@@ -7,7 +7,7 @@ import pytest
 import scipy.stats
 import torch
 
-from benchmarks import aggregate, context_identifiability, decoder_signal, experiments, figures, inspect_adapters
+from benchmarks import aggregate, context_effect, context_identifiability, decoder_signal, experiments, figures, inspect_adapters
 from common.evaluation import mean_ci
 
 
@@ -197,6 +197,68 @@ def test_grouping_reports_incomplete_runs(tmp_path):
         assert {r["metric"] for r in rows} == expected and {c["metric"] for c in curves} == expected
 
 
+def test_context_effect_tells_context_use_from_adaptation():
+    """context_effect.py's arms on in-memory CLAW, FiLM and Concat models whose answers are known: adapters that
+    do not depend on the context change predictions against the base but not between contexts, and a context
+    pathway that does shows a swap change far above the same-environment one."""
+    import claw_tdmpc2 as claw
+    import concat_tdmpc2 as concat
+    import film_tdmpc2 as film
+
+    obs_dim, act_dim, n_rows = 5, 2, 40
+    g = torch.Generator().manual_seed(0)
+    with context_effect.float64():
+        batches = {j: (torch.randn(32, obs_dim, generator=g), torch.rand(32, act_dim, generator=g) * 2 - 1) for j in (0, 1)}
+        # each environment's context draws scatter a little around rows of their own
+        typical = {j: torch.randn(n_rows, 2 * obs_dim + act_dim + 1, generator=g) for j in (0, 1)}
+        contexts = {(j, d): typical[j] + 0.01 * torch.randn(n_rows, 2 * obs_dim + act_dim + 1, generator=g) for j in (0, 1) for d in (0, 1, 2)}
+
+        def effect(method, model, hypernet, args):
+            state = {"args": vars(args), "dims": (obs_dim, act_dim), "model": model.state_dict(), "hypernet": hypernet.state_dict()}
+            args, model, weights_for = context_effect.build(method, state)
+            model.eval()
+            return context_effect.context_effect(method, model, weights_for, args, batches, contexts)
+
+        for method in (claw, film):
+            torch.manual_seed(0)
+            args = method.Args(model_size="I", rank=2) if method is claw else method.Args(model_size="I")
+            model = method.WorldModel(obs_dim, act_dim, "I", args)
+            with torch.no_grad():  # TD-MPC2 zero-initialises the reward and Q heads: every reward and Q would be 0
+                model.reward.weights[-1].normal_(0, 0.1)
+                model.qs.weights[-1].normal_(0, 0.1)
+            layout, n_wm, n_pi = claw.lora_layout(model, 2) if method is claw else film.film_layout(model)
+            template = claw.lora_template(layout, n_wm + n_pi) if method is claw else torch.zeros(n_wm + n_pi)
+            hypernet = method.Hypernet(2 * obs_dim + act_dim + 1, template, args)
+            # at init (A = 0 or gamma = beta = 0, generator output 0) every arm predicts exactly as the base
+            at_init = effect(method, model, hypernet, args)
+            assert all(v == 0 for r in at_init.values() for arm in r.values() for v in arm.values())
+            # a fixed non-zero adapter: it changes predictions against the base, not between contexts
+            with torch.no_grad():
+                hypernet.template.normal_(0, 0.3)
+            fixed = effect(method, model, hypernet, args)
+            for r in fixed.values():
+                assert all(v == 0 for v in r["same"].values()) and all(v == 0 for v in r["swap"].values())
+                assert all(v > 1e-3 for v in r["base"].values())
+            # a generator that reads u_con: environment 1's context moves predictions far more than another draw of 0's
+            with torch.no_grad():
+                hypernet.generator[-1].weight.normal_(0, 0.1)
+            used = effect(method, model, hypernet, args)
+            for r in used.values():
+                assert all(r["swap"][name] > 5 * r["same"][name] > 0 for name in context_effect.OUTPUTS)
+        torch.manual_seed(0)
+        args = concat.Args(model_size="I")
+        model, encoder = concat.WorldModel(obs_dim, act_dim, "I", args), concat.ContextEncoder(2 * obs_dim + act_dim + 1, args)
+        with torch.no_grad():
+            model.reward.weights[-1].normal_(0, 0.1)
+            model.qs.weights[-1].normal_(0, 0.1)
+        concat_effect = effect(concat, model, encoder, args)
+    assert all(set(r) == {"same", "swap"} for r in concat_effect.values())  # no unconditioned Concat model
+    assert all(r["swap"][name] > 5 * r["same"][name] > 0 for r in concat_effect.values() for name in context_effect.OUTPUTS)
+    assert torch.get_default_dtype() == torch.float32  # float64() restores the default
+    table = context_effect.markdown(used)
+    assert table.count("\n") == 1 + len(context_effect.OUTPUTS) and "| swap / same |" in table
+
+
 def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     runs = [r for r in experiments.plan_runs(["exp1"], "smoke") if r.method == "claw"]
     assert len(runs) == 2
@@ -216,6 +278,8 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     inspect_adapters.main([str(tmp_path / runs[0].name / "checkpoint.pt"), "--episodes", "1"])
     out = capsys.readouterr().out
     assert "delta phi (world model)" in out and "merged update" in out and "gradient norms of one world-model loss" in out
+    effect = context_effect.main([str(tmp_path / runs[0].name / "checkpoint.pt"), "--episodes", "1", "--draws", "2", "--batch", "8"])
+    assert sorted(effect) == list(range(6)) and "| policy action |" in capsys.readouterr().out
     assert experiments.launch(runs + [control], str(tmp_path), workers=1, dry_run=False) == 0  # a second call: nothing left
     out = capsys.readouterr().out
     assert f"skip (done)  {runs[0].name}" in out and f"skip (done)  {control.name}" in out and "ready" not in out
