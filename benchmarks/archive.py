@@ -3,8 +3,9 @@
 A sweep directory lives on one machine, beside multi-megabyte checkpoints. When the machine is lost, so is every
 finished run's measurement (this happened between the ninth and tenth sessions: 23 finished runs gone, only their
 aggregated tables left, no per-seed values to pool with new seeds). An archived run is its run.json, its
-TensorBoard scalars as JSON (scalars.json), its stdout.log and, for the context controls, controls.json and
-controls.md: ~100-200 kB for a 50,000-step run. `aggregate.py` and `figures.py` read an archive like a sweep directory, and
+TensorBoard scalars as JSON (scalars.json), its stdout.log, for an in-context method's run context_effect.md
+(`context_effect.py`: how much the context moves the world model's predictions, measured on the checkpoint) and,
+for the context controls, controls.json and controls.md: ~100-200 kB for a 50,000-step run. `aggregate.py` and `figures.py` read an archive like a sweep directory, and
 `experiments.py --archive DIR` archives each run as it finishes and skips the runs the archive holds.
 
     python benchmarks/archive.py /work/sweeps/learn results/learn/runs   # archive every finished run of a sweep
@@ -18,7 +19,7 @@ import os
 import shutil
 
 SCALARS = "scalars.json"
-KEPT = ("stdout.log", "controls.json", "controls.md")  # copied as they are, where the run wrote them
+KEPT = ("stdout.log", "context_effect.md", "controls.json", "controls.md")  # copied as they are, where the run wrote them
 
 
 def read_scalars(run_dir: str) -> tuple[dict, list]:

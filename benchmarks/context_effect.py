@@ -15,7 +15,10 @@ method plans as one context-free model would, whatever its adapters' size (base)
 `inspect_adapters.py` (CLAW's u_con and LoRA factors) it measures every in-context method on the same scale.
 Computed in float64, so changes down to ~1e-12 are resolved.
 
-    python benchmarks/context_effect.py runs/<run>/checkpoint.pt [--episodes 3] [--draws 3] [--batch 256]
+    python benchmarks/context_effect.py runs/<run>/checkpoint.pt [--episodes 3] [--draws 3] [--batch 256] [--out effect.md]
+
+The sweep launcher (`experiments.py`) runs it on every CLAW, FiLM, Concat and post-hoc run it finishes and keeps
+context_effect.md in the run's archive, which outlives the checkpoint.
 """
 from __future__ import annotations
 
@@ -120,12 +123,16 @@ def main(argv=None):
     parser.add_argument("--episodes", type=int, default=3, help="pi_con episodes per fresh context")
     parser.add_argument("--draws", type=int, default=3, help="fresh contexts per environment (>= 2)")
     parser.add_argument("--batch", type=int, default=256, help="replay transitions per environment")
+    parser.add_argument("--out", help="also write the report (markdown) here")
     cli = parser.parse_args(argv)
     if cli.draws < 2 or cli.episodes < 1 or cli.batch < 1:
         parser.error("need --draws >= 2, --episodes >= 1 and --batch >= 1")
-    state = torch.load(cli.checkpoint, map_location="cpu", weights_only=False)
-    if state.get("method") not in METHODS:
-        raise SystemExit(f"error: {cli.checkpoint} is a {state.get('method')} checkpoint; this reads {', '.join(METHODS)}")
+    try:
+        state = torch.load(cli.checkpoint, map_location="cpu", weights_only=False)
+    except Exception as error:  # missing, truncated or not a torch file: torch raises many types
+        raise SystemExit(f"error: cannot read checkpoint {cli.checkpoint}: {type(error).__name__}: {error}") from None
+    if not isinstance(state, dict) or state.get("method") not in METHODS:
+        raise SystemExit(f"error: {cli.checkpoint} is not a checkpoint of {', '.join(METHODS)}")
     method = importlib.import_module(state["method"].removesuffix(".py"))
     family, n = state["args"]["family"], num_envs(state["args"]["family"])
     with float64():
@@ -144,10 +151,13 @@ def main(argv=None):
                 contexts[j, d] = method.context_tensor(collect_episodes(env, cli.episodes, seed=3_000_000_000 + 1000 * d + j), "cpu").double()
         results = context_effect(method, model, weights_for, args, batches, contexts)
     missing = sorted(set(range(n)) - set(batches))
-    print(f"{cli.checkpoint}: {state['method']}, family {family}, size {args.model_size}; {len(batches)} environments "
-          f"with replay ({cli.batch} transitions each), {cli.draws} fresh {cli.episodes}-episode contexts each"
-          + (f"; no replay for environment(s) {missing}" if missing else ""))
-    print(markdown(results))
+    report = (f"{cli.checkpoint}: {state['method']}, family {family}, size {args.model_size}; {len(batches)} environments "
+              f"with replay ({cli.batch} transitions each), {cli.draws} fresh {cli.episodes}-episode contexts each"
+              + (f"; no replay for environment(s) {missing}" if missing else "") + "\n\n" + markdown(results) + "\n")
+    print(report, end="")
+    if cli.out:
+        with open(cli.out, "w") as f:
+            f.write(report)
     return results
 
 

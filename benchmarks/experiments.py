@@ -74,6 +74,9 @@ SCRIPTS["claw_decoder"] = SCRIPTS["claw"]
 # evaluation-only methods (benchmarks/context_controls.py) -> the trained method whose checkpoints they evaluate
 CONTROLS = {"controls": "claw", "controls_decoder": "claw_decoder"}
 SCRIPTS["controls_decoder"] = SCRIPTS["controls"]
+# in-context methods: once one of their runs is done, the launcher measures on its checkpoint how much the context moves
+# the world model's predictions (context_effect.md, kept in the archive, which does not keep checkpoints)
+CONTEXT_EFFECT = ("claw", "claw_decoder", "film", "concat", "posthoc")
 DECODER_FLAGS = ["--decoder-coef", "1.0"]  # chosen at the cpu scale, RESULTS.md "An identification loss"
 # Paper Table "Experiment 3 model-size sweep": LoRA rank tied to size.
 LOCK = "run.lock"  # held by the process that runs the run, for the run's lifetime (lock_run)
@@ -318,6 +321,18 @@ def recorded_command(record: dict) -> list[str]:
 _STOP = threading.Event()  # set when a local sweep is interrupted: no new runs, and runs end as "interrupted"
 
 
+def measure_context_effect(run_dir: str, env: dict) -> None:
+    """context_effect.md of a finished in-context run (seconds); a failure is a warning: the run is done all the same,
+    and `python benchmarks/context_effect.py CHECKPOINT --out ...` can redo it while the checkpoint exists."""
+    command = [sys.executable, os.path.join(REPO, "benchmarks", "context_effect.py"), os.path.join(run_dir, "checkpoint.pt"),
+               "--out", os.path.join(run_dir, "context_effect.md")]
+    with open(os.path.join(run_dir, "stdout.log"), "a") as log:
+        returncode = subprocess.run(command, cwd=REPO, env={**os.environ, **env, "OMP_NUM_THREADS": "1"},
+                                    stdout=log, stderr=subprocess.STDOUT).returncode
+    if returncode != 0:
+        print(f"warning: context_effect.py failed on {run_dir} (exit {returncode}; see its stdout.log)", flush=True)
+
+
 class RunJob(submitit.helpers.Checkpointable):
     """Runs one sweep run, holding its lock; the same callable for the local and the SLURM engine.
 
@@ -361,6 +376,8 @@ class RunJob(submitit.helpers.Checkpointable):
                     self.stop()
                     raise
             status = "interrupted" if _STOP.is_set() else "done" if returncode == 0 else "failed"
+            if status == "done" and run.method in CONTEXT_EFFECT:
+                measure_context_effect(run_dir, env)
             write_status(run_dir, run, command, status, resumed=bool(resume), returncode=returncode,
                          seconds=round(time.time() - start, 1), **where)
             if status == "done" and self.archive:

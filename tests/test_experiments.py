@@ -291,6 +291,10 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     # whose sweep directory is gone (a lost machine) reruns nothing it holds
     assert sorted(os.listdir(archive)) == sorted(r.name for r in runs + [control])
     assert sorted(os.listdir(os.path.join(archive, control.name))) == ["controls.json", "controls.md", "run.json", "scalars.json", "stdout.log"]
+    # a finished CLAW run's archive keeps what its context does to its predictions, measured on the checkpoint it lacks
+    assert sorted(os.listdir(os.path.join(archive, runs[0].name))) == ["context_effect.md", "run.json", "scalars.json", "stdout.log"]
+    effect_report = open(os.path.join(archive, runs[0].name, "context_effect.md")).read()
+    assert "claw_tdmpc2.py, family reach" in effect_report and "| policy action |" in effect_report and "| swap / same |" in effect_report
     sweep_runs, archived_runs = aggregate.load_runs(str(tmp_path)), aggregate.load_runs(archive)
     assert aggregate.summarize(archived_runs)[:2] == aggregate.summarize(sweep_runs)[:2]
     assert repr(aggregate.controls_rows(archived_runs)) == repr(aggregate.controls_rows(sweep_runs)) != "[]"  # repr: nan == nan
