@@ -88,15 +88,15 @@ def context_effect(method, model, weights_for, args, batches: dict, contexts: di
     """batches[j] = (obs [B, obs_dim], action [B, act_dim]); contexts[(j, draw)] = rows. -> {env: {arm: {output: mean
     relative change}}}; the base arm is absent for a method without unconditioned weights (Concat)."""
     envs, draws = sorted({e for e, _ in contexts}), sorted({d for _, d in contexts})
+    weights = {key: weights_for(rows) for key, rows in contexts.items()}  # one conditioning per context, reused by every arm
+    base = weights_for(None)
     results = {}
     for j in sorted(batches):
         other = envs[(envs.index(j) + 1) % len(envs)]
-        base = weights_for(None)
         arms = {arm: {name: [] for name in OUTPUTS} for arm in ARMS if arm != "base" or base is not None}
         for d in draws:
-            own = predictions(method, model, weights_for(contexts[j, d]), *batches[j], args)
-            versus = {"same": weights_for(contexts[j, draws[(draws.index(d) + 1) % len(draws)]]),
-                      "swap": weights_for(contexts[other, d]), "base": base}
+            own = predictions(method, model, weights[j, d], *batches[j], args)
+            versus = {"same": weights[j, draws[(draws.index(d) + 1) % len(draws)]], "swap": weights[other, d], "base": base}
             for arm, values in arms.items():
                 for name, f in predictions(method, model, versus[arm], *batches[j], args).items():
                     values[name].append(float((f - own[name]).norm() / own[name].norm().clamp_min(1e-30)))
