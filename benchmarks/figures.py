@@ -37,20 +37,31 @@ METAWORLD = ("reach", "push")
 
 
 def _ci(value):
-    return 0.0 if value is None or math.isnan(value) else value
+    """A CI half-width, NaN where there is none (one seed): matplotlib draws no error bar for NaN, where 0 would
+    draw a cap that reads as a very tight interval."""
+    return math.nan if value is None else value
 
 
 def _interval(metric, rows, ci_key="ci95"):
     """(lowers, uppers) of each row's mean +- CI, cut to what the metric can take (success in [0, 1], returns >= 0:
-    every family's rewards are non-negative): at n = 2 (t = 12.7) a raw interval spans impossible values."""
+    every family's rewards are non-negative): at n = 2 (t = 12.7) a raw interval spans impossible values. NaN
+    where a row has no CI."""
     top = 1.0 if metric.endswith("success") else math.inf
-    return ([max(0.0, r["mean"] - _ci(r[ci_key])) for r in rows], [min(top, r["mean"] + _ci(r[ci_key])) for r in rows])
+    half = [_ci(r[ci_key]) for r in rows]
+    return ([math.nan if math.isnan(h) else max(0.0, r["mean"] - h) for r, h in zip(rows, half)],
+            [math.nan if math.isnan(h) else min(top, r["mean"] + h) for r, h in zip(rows, half)])
 
 
 def _yerr(metric, rows, ci_key="ci95"):
     """_interval as matplotlib's asymmetric yerr."""
     lower, upper = _interval(metric, rows, ci_key)
     return [[r["mean"] - lo for r, lo in zip(rows, lower)], [hi - r["mean"] for r, hi in zip(rows, upper)]]
+
+
+def _seeds(rows) -> str:
+    """How many seeds the points of a figure average, for its title: "n = 3" or "n = 1-3"."""
+    counts = sorted({int(r["n"]) for r in rows})
+    return f"n = {counts[0]}" if len(counts) == 1 else f"n = {counts[0]}-{counts[-1]}"
 
 
 def world_model_sizes(size: str, rank: int, obs_dim: int = 24, act_dim: int = 6) -> tuple[int, int, int]:
@@ -132,7 +143,8 @@ def figure_exp2(rows, curves, out) -> str | None:
             for p in select(rows, family=family, method=method, metric=metric):
                 ax.axhline(p["mean"], color=COLORS[method], label=f"{LABELS[method]}, 1 hypernet pass")
                 (lower,), (upper,) = _interval(metric, [p])
-                ax.axhspan(lower, upper, color=COLORS[method], alpha=0.15)
+                if not math.isnan(lower):
+                    ax.axhspan(lower, upper, color=COLORS[method], alpha=0.15)
         ax.set_xscale("symlog", linthresh=1)
         ax.set_xlim(0, max(steps) * 1.5 + 1)
         ax.set_xlabel("offline gradient steps")
@@ -185,11 +197,12 @@ def figure_exp4(rows, curves, out) -> str | None:
         for r in select(cw, method=method, size=size):
             ax_rank.axhline(r["mean"], color=COLORS[method], linestyle="--", label=LABELS[method])
             (lower,), (upper,) = _interval("return", [r])
-            ax_rank.axhspan(lower, upper, color=COLORS[method], alpha=0.1)
+            if not math.isnan(lower):
+                ax_rank.axhspan(lower, upper, color=COLORS[method], alpha=0.1)
             if method == "film":  # FiLM spends a scale and a shift per world-model hidden feature
                 film_percent = 100 * film_parameters(size) / world_model
                 ax_pct.errorbar([film_percent], [r["mean"]], yerr=_yerr("return", [r]), color=COLORS[method], marker="s", capsize=3, label="FiLM")
-    ax_rank.set(xscale="log", xlabel="LoRA rank", ylabel="episode return", title=f"Cheetah/Walker, size {size}")
+    ax_rank.set(xscale="log", xlabel="LoRA rank", ylabel="episode return", title=f"Cheetah/Walker, size {size}, {_seeds(claw + select(cw, size=size))}")
     ax_pct.set(xscale="log", xlabel="adapter size (% of world model)", ylabel="episode return")
     for ax in (ax_rank, ax_pct):  # plain numbers at the data points, not 4x10^0 minor ticks
         ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
@@ -223,7 +236,7 @@ def figure_exp5(rows, curves, out) -> str | None:
     fig, ax = plt.subplots(figsize=(3.5, 3.5))
     ax.bar([b[0] for b in bars], [b[1]["mean"] for b in bars], yerr=_yerr("return", [b[1] for b in bars]),
            color=[b[2] for b in bars], capsize=4)
-    ax.set(ylabel="Cheetah episode return", title=f"size {size}, rank {rank}")
+    ax.set(ylabel="Cheetah episode return", title=f"size {size}, rank {rank}, {_seeds([b[1] for b in bars])}")
     fig.tight_layout()
     fig.savefig(os.path.join(out, "exp5.png"), dpi=120)
     return None

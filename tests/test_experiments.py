@@ -1,5 +1,6 @@
 """Sweep tooling: CI math, recipes and launcher, aggregation, figures."""
 import json
+import math
 import os
 
 import numpy as np
@@ -482,4 +483,26 @@ def test_figure_intervals_stay_within_what_the_metric_can_take():
     assert lower == pytest.approx([0.4, 0.05]) and upper == pytest.approx([1.0, 0.15])
     assert figures._interval("offline_return", [{"mean": 100.0, "ci95": 300.0}]) == ([0.0], [400.0])
     assert figures._yerr("offline_return", [{"mean": 100.0, "ci95": 300.0}]) == [[100.0], [300.0]]
-    assert figures._yerr("offline_return", [{"mean": 100.0, "ci95_seeds": float("nan")}], "ci95_seeds") == [[0.0], [0.0]]  # one seed
+    # one seed has no interval: NaN, which matplotlib does not draw (0 would draw a cap that reads as a tight interval)
+    for no_ci in (float("nan"), None):
+        (low,), (high,) = figures._yerr("offline_return", [{"mean": 100.0, "ci95_seeds": no_ci}], "ci95_seeds")
+        assert math.isnan(low) and math.isnan(high)
+
+
+def test_one_seed_figures_draw_no_error_bars_and_say_n(tmp_path, monkeypatch):
+    rows = [{"method": m, "family": "cheetah_walker", "size": "F", "rank": 8, "metric": "online_return_env0", "n": 1,
+             "mean": v, "ci95": float("nan")} for m, v in (("claw", 190.0), ("posthoc", 25.0))]
+    saved = []
+    monkeypatch.setattr(figures.plt.Figure, "savefig", lambda fig, path, **kwargs: saved.append(fig))
+    assert figures.figure_exp5(rows, [], str(tmp_path)) is None
+    ax = saved[0].axes[0]
+    assert ax.get_title() == "size F, rank 8, n = 1"
+    error_lines = [c for c in ax.containers if isinstance(c, figures.matplotlib.container.ErrorbarContainer)]
+    drawn = [seg for c in error_lines for coll in c.lines[2] for seg in coll.get_segments() if np.isfinite(seg).any()]
+    assert error_lines and not drawn
+    rows[1].update(n=3, ci95=5.0)  # with an interval, the bar gets one
+    saved.clear()
+    figures.figure_exp5(rows, [], str(tmp_path))
+    drawn = [seg for c in saved[0].axes[0].containers if isinstance(c, figures.matplotlib.container.ErrorbarContainer)
+             for coll in c.lines[2] for seg in coll.get_segments() if np.isfinite(seg).any()]
+    assert saved[0].axes[0].get_title() == "size F, rank 8, n = 1-3" and len(drawn) == 1 and np.allclose(drawn[0][:, 1], [20, 30])
