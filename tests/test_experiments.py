@@ -494,15 +494,16 @@ def test_one_seed_figures_draw_no_error_bars_and_say_n(tmp_path, monkeypatch):
              "mean": v, "ci95": float("nan")} for m, v in (("claw", 190.0), ("posthoc", 25.0))]
     saved = []
     monkeypatch.setattr(figures.plt.Figure, "savefig", lambda fig, path, **kwargs: saved.append(fig))
+
+    def drawn_error_bars():  # of the last figure: matplotlib keeps a NaN error bar as an empty segment
+        ax = saved[-1].axes[0]
+        bars = [c for c in ax.containers if isinstance(c, figures.matplotlib.container.ErrorbarContainer)]
+        assert bars
+        return ax.get_title(), [seg for c in bars for coll in c.lines[2] for seg in coll.get_segments() if np.isfinite(seg).any()]
+
     assert figures.figure_exp5(rows, [], str(tmp_path)) is None
-    ax = saved[0].axes[0]
-    assert ax.get_title() == "size F, rank 8, n = 1"
-    error_lines = [c for c in ax.containers if isinstance(c, figures.matplotlib.container.ErrorbarContainer)]
-    drawn = [seg for c in error_lines for coll in c.lines[2] for seg in coll.get_segments() if np.isfinite(seg).any()]
-    assert error_lines and not drawn
+    assert drawn_error_bars() == ("size F, rank 8, n = 1", [])
     rows[1].update(n=3, ci95=5.0)  # with an interval, the bar gets one
-    saved.clear()
     figures.figure_exp5(rows, [], str(tmp_path))
-    drawn = [seg for c in saved[0].axes[0].containers if isinstance(c, figures.matplotlib.container.ErrorbarContainer)
-             for coll in c.lines[2] for seg in coll.get_segments() if np.isfinite(seg).any()]
-    assert saved[0].axes[0].get_title() == "size F, rank 8, n = 1-3" and len(drawn) == 1 and np.allclose(drawn[0][:, 1], [20, 30])
+    title, drawn = drawn_error_bars()
+    assert title == "size F, rank 8, n = 1-3" and len(drawn) == 1 and np.allclose(drawn[0][:, 1], [20, 30])
