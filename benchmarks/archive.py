@@ -4,7 +4,8 @@ A sweep directory lives on one machine, beside multi-megabyte checkpoints. When 
 finished run's measurement (this happened between the ninth and tenth sessions: 23 finished runs gone, only their
 aggregated tables left, no per-seed values to pool with new seeds). An archived run is its run.json, its
 TensorBoard scalars as JSON (scalars.json), its stdout.log, for an in-context method's run context_effect.md
-(`context_effect.py`: how much the context moves the world model's predictions, measured on the checkpoint) and,
+(`context_effect.py`: how much the context moves the world model's predictions, measured on the checkpoint), for a
+CLAW run inspect_adapters.txt (`inspect_adapters.py`: do u_con and the adapters tell the environments apart) and,
 for the context controls, controls.json and controls.md: ~100-200 kB for a 50,000-step run. `aggregate.py` and `figures.py` read an archive like a sweep directory, and
 `experiments.py --archive DIR` archives each run as it finishes and skips the runs the archive holds.
 
@@ -19,7 +20,7 @@ import os
 import shutil
 
 SCALARS = "scalars.json"
-KEPT = ("stdout.log", "context_effect.md", "controls.json", "controls.md")  # copied as they are, where the run wrote them
+KEPT = ("stdout.log", "context_effect.md", "inspect_adapters.txt", "controls.json", "controls.md")  # copied as they are, where the run wrote them
 
 
 def read_scalars(run_dir: str) -> tuple[dict, list]:

@@ -74,9 +74,14 @@ SCRIPTS["claw_decoder"] = SCRIPTS["claw"]
 # evaluation-only methods (benchmarks/context_controls.py) -> the trained method whose checkpoints they evaluate
 CONTROLS = {"controls": "claw", "controls_decoder": "claw_decoder"}
 SCRIPTS["controls_decoder"] = SCRIPTS["controls"]
-# in-context methods: once one of their runs is done, the launcher measures on its checkpoint how much the context moves
-# the world model's predictions (context_effect.md, kept in the archive, which does not keep checkpoints)
-CONTEXT_EFFECT = ("claw", "claw_decoder", "film", "concat", "posthoc")
+# what the launcher measures on a finished run's checkpoint, kept in the archive (which does not keep checkpoints):
+# report file -> (benchmarks/ script whose stdout it is, the methods it applies to). context_effect: how much the
+# context moves the world model's predictions (in-context methods); inspect_adapters: whether u_con and the generated
+# adapters tell the environments apart, and which losses reach the context encoder (CLAW's hypernetwork)
+CHECKPOINT_REPORTS = {
+    "context_effect.md": ("context_effect.py", ("claw", "claw_decoder", "film", "concat", "posthoc")),
+    "inspect_adapters.txt": ("inspect_adapters.py", ("claw", "claw_decoder")),
+}
 DECODER_FLAGS = ["--decoder-coef", "1.0"]  # chosen at the cpu scale, RESULTS.md "An identification loss"
 # Paper Table "Experiment 3 model-size sweep": LoRA rank tied to size.
 LOCK = "run.lock"  # held by the process that runs the run, for the run's lifetime (lock_run)
@@ -321,16 +326,22 @@ def recorded_command(record: dict) -> list[str]:
 _STOP = threading.Event()  # set when a local sweep is interrupted: no new runs, and runs end as "interrupted"
 
 
-def measure_context_effect(run_dir: str, env: dict) -> None:
-    """context_effect.md of a finished in-context run (seconds); a failure is a warning: the run is done all the same,
-    and `python benchmarks/context_effect.py CHECKPOINT --out ...` can redo it while the checkpoint exists."""
-    command = [sys.executable, os.path.join(REPO, "benchmarks", "context_effect.py"), os.path.join(run_dir, "checkpoint.pt"),
-               "--out", os.path.join(run_dir, "context_effect.md")]
-    with open(os.path.join(run_dir, "stdout.log"), "a") as log:
-        returncode = subprocess.run(command, cwd=REPO, env={**os.environ, **env, "OMP_NUM_THREADS": "1"},
-                                    stdout=log, stderr=subprocess.STDOUT).returncode
-    if returncode != 0:
-        print(f"warning: context_effect.py failed on {run_dir} (exit {returncode}; see its stdout.log)", flush=True)
+def measure_checkpoint(run_dir: str, method: str, env: dict) -> None:
+    """The CHECKPOINT_REPORTS of a finished run (seconds to a few minutes each); a failure is a warning: the run is
+    done all the same, and `python benchmarks/<script> CHECKPOINT > REPORT` can redo it while the checkpoint exists."""
+    for report, (script, methods) in CHECKPOINT_REPORTS.items():
+        if method not in methods:
+            continue
+        path = os.path.join(run_dir, report)
+        command = [sys.executable, os.path.join(REPO, "benchmarks", script), os.path.join(run_dir, "checkpoint.pt")]
+        with open(os.path.join(run_dir, "stdout.log"), "a") as log, open(path + ".partial", "w") as out:
+            returncode = subprocess.run(command, cwd=REPO, env={**os.environ, **env, "OMP_NUM_THREADS": "1"},
+                                        stdout=out, stderr=log).returncode
+        if returncode == 0:
+            os.replace(path + ".partial", path)  # a report exists only whole
+        else:
+            os.remove(path + ".partial")
+            print(f"warning: {script} failed on {run_dir} (exit {returncode}; see its stdout.log)", flush=True)
 
 
 class RunJob(submitit.helpers.Checkpointable):
@@ -376,8 +387,8 @@ class RunJob(submitit.helpers.Checkpointable):
                     self.stop()
                     raise
             status = "interrupted" if _STOP.is_set() else "done" if returncode == 0 else "failed"
-            if status == "done" and run.method in CONTEXT_EFFECT:
-                measure_context_effect(run_dir, env)
+            if status == "done":
+                measure_checkpoint(run_dir, run.method, env)
             write_status(run_dir, run, command, status, resumed=bool(resume), returncode=returncode,
                          seconds=round(time.time() - start, 1), **where)
             if status == "done" and self.archive:

@@ -8,7 +8,7 @@ import pytest
 import scipy.stats
 import torch
 
-from benchmarks import aggregate, context_effect, context_identifiability, decoder_signal, experiments, figures, inspect_adapters
+from benchmarks import aggregate, context_effect, context_identifiability, decoder_signal, experiments, figures
 from common.evaluation import mean_ci
 
 
@@ -275,10 +275,6 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     assert "| claw | reach | I | 2 | online_return |" in summary and "| offline_return | 0 | 2 |" in summary
     rows, curves, _ = aggregate.summarize(aggregate.load_runs(str(tmp_path)))
     assert figures.figure_exp1(rows, curves, str(tmp_path)) == "exp1: no DR/ST/Oracle runs"
-    # the identifiability diagnostic reads a sweep's CLAW checkpoint
-    inspect_adapters.main([str(tmp_path / runs[0].name / "checkpoint.pt"), "--episodes", "1"])
-    out = capsys.readouterr().out
-    assert "delta phi (world model)" in out and "merged update" in out and "gradient norms of one world-model loss" in out
     effect = context_effect.main([str(tmp_path / runs[0].name / "checkpoint.pt"), "--episodes", "1", "--draws", "2", "--batch", "8"])
     assert sorted(effect) == list(range(6)) and "| policy action |" in capsys.readouterr().out
     assert experiments.launch(runs + [control], str(tmp_path), workers=1, dry_run=False) == 0  # a second call: nothing left
@@ -292,10 +288,14 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     # whose sweep directory is gone (a lost machine) reruns nothing it holds
     assert sorted(os.listdir(archive)) == sorted(r.name for r in runs + [control])
     assert sorted(os.listdir(os.path.join(archive, control.name))) == ["controls.json", "controls.md", "run.json", "scalars.json", "stdout.log"]
-    # a finished CLAW run's archive keeps what its context does to its predictions, measured on the checkpoint it lacks
-    assert sorted(os.listdir(os.path.join(archive, runs[0].name))) == ["context_effect.md", "run.json", "scalars.json", "stdout.log"]
+    # a finished CLAW run's archive keeps what its context does to its predictions and whether its adapters tell the
+    # environments apart, both measured on the checkpoint it lacks
+    assert sorted(os.listdir(os.path.join(archive, runs[0].name))) == [
+        "context_effect.md", "inspect_adapters.txt", "run.json", "scalars.json", "stdout.log"]
     effect_report = open(os.path.join(archive, runs[0].name, "context_effect.md")).read()
     assert "claw_tdmpc2.py, family reach" in effect_report and "| policy action |" in effect_report and "| swap / same |" in effect_report
+    adapters_report = open(os.path.join(archive, runs[0].name, "inspect_adapters.txt")).read()
+    assert all(line in adapters_report for line in ("delta phi (world model)", "merged update", "gradient norms of one world-model loss"))
     sweep_runs, archived_runs = aggregate.load_runs(str(tmp_path)), aggregate.load_runs(archive)
     assert aggregate.summarize(archived_runs)[:2] == aggregate.summarize(sweep_runs)[:2]
     assert repr(aggregate.controls_rows(archived_runs)) == repr(aggregate.controls_rows(sweep_runs)) != "[]"  # repr: nan == nan
