@@ -1,5 +1,5 @@
 """Aggregate a sweep: read each run's TensorBoard events, group runs that differ only by seed,
-and report mean and 95% Student-t CI across seeds as CSV and a markdown table.
+and report mean and 95% Student-t CI across seeds, beside each seed's value, as CSV and a markdown table.
 
     python benchmarks/aggregate.py runs/sweeps/cpu      # writes summary.csv, curves.csv, summary.md there
 
@@ -118,10 +118,11 @@ def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str,
     rows, curves = [], []
     for key, members in sorted(groups.items(), key=lambda kv: tuple(str(k) for k in kv[0])):
         for (metric, x), by_seed in sorted(_by_metric(members).items(), key=lambda kv: (kv[0][0], kv[0][1] or 0)):
-            values = list(by_seed.values())
-            mean, half = mean_ci(values)
-            rows.append({**dict(zip(GROUP_KEYS, key)), "metric": metric, "x": x, "n": len(values), "mean": mean, "ci95": half,
-                         "seeds": ",".join(str(r["seed"]) for r in members)})
+            seeds = sorted(by_seed)
+            mean, half = mean_ci([by_seed[s] for s in seeds])
+            # each seed's value beside the mean: RESULTS quotes them, and they are what a new seed is compared with
+            rows.append({**dict(zip(GROUP_KEYS, key)), "metric": metric, "x": x, "n": len(seeds), "mean": mean, "ci95": half,
+                         "seeds": ",".join(map(str, seeds)), "per_seed": ",".join(f"{by_seed[s]:.10g}" for s in seeds)})
         for metric in reported_keys(key[GROUP_KEYS.index("family")]):
             by_step = defaultdict(list)
             for run in members:
@@ -390,11 +391,12 @@ def write_csv(path: str, rows: list[dict]):
 
 
 def markdown(rows: list[dict], problems: list[tuple[str, str]], duplicated: list[tuple[str, list]] = ()) -> str:
-    lines = ["| method | family | size | rank | metric | x | seeds | mean | 95% CI |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| method | family | size | rank | metric | x | seeds | mean | 95% CI | per seed |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         x = "" if r["x"] is None else r["x"]
+        per_seed = ", ".join(f"s{seed}: {float(v):.1f}" for seed, v in zip(r["seeds"].split(","), r["per_seed"].split(",")))
         lines.append(f"| {r['method']} | {r['family']} | {r['size']} | {r['rank']} | {r['metric']} | {x} | {r['n']} | "
-                     f"{r['mean']:.1f} | {ci_cell(r['ci95'])} |")
+                     f"{r['mean']:.1f} | {ci_cell(r['ci95'])} | {per_seed} |")
     if problems:
         lines += ["", "Runs not aggregated:", ""] + [f"- `{os.path.basename(d)}`: {why}" for d, why in problems]
     if duplicated:

@@ -188,6 +188,7 @@ def test_grouping_reports_incomplete_runs(tmp_path):
     assert online["ci95"] == pytest.approx(mean_ci([15.0, 25.0, 35.0])[1])
     assert [c["mean"] for c in curves if c["metric"] == "online_return"] == pytest.approx([20.0, 30.0])
     assert problems == [("b", "status failed (returncode 1)"), ("c", "finished without evaluation events")]
+    assert online["per_seed"] == "15,25,35" and "| 25.0 | ± 24.8 | s1: 15.0, s2: 25.0, s3: 35.0 |" in aggregate.markdown(rows, problems)
     assert "Runs not aggregated" in aggregate.markdown(rows, problems)
     # success is a Meta-World metric: a dm_control family's constant-zero success is not reported
     success_scalars = {"eval/online/episodic_return": [(100, 5.0)], "eval/online/success": [(100, 0.0)]}
