@@ -10,9 +10,9 @@ Metrics per run (keys written by every method script):
                                    (CLAW, FiLM, Concat: x = 0, their single adaptation pass)
   online_return_env{j}             Exp 1 return in environment j alone
 Curves (Exp 1): family-averaged return and success per test-time step, averaged across seeds.
-Training curves (ST runs: experiment budget's, one embodiment per run, and Exp 1/2's): the mean
-training-episode return per window of agent steps, per seed, then mean and 95% CI across seeds,
-beside the random policy's return (training_curves.csv / training_curves.md).
+Training curves (the budget recipe's ST runs, one embodiment per run, and every Exp 1/2 run): the mean
+training-episode return (and success) per window of agent steps, per seed, then mean and 95% CI across
+seeds, beside the random policy's return (training_curves.csv / training_curves.md).
 Runs that failed, are still running (their run.lock is held), died, or lack evaluation events are listed,
 never dropped silently; so are runs whose events repeat a step (a resume logged without purge_step), of
 which the last value counts.
@@ -135,16 +135,25 @@ def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str,
     return rows, curves, problems
 
 
-def train_env_of(run: dict) -> int | None:
-    """ST's --train-env-id from the recorded command (the budget recipe trains one embodiment per run)."""
+TRAINING_EXPERIMENTS = ("budget", "exp1", "exp2", "decoder")  # whose runs' training episodes are compared across methods
+
+
+def train_env_of(run: dict) -> int | str:
+    """The environment a run trains on: ST's --train-env-id (0 by default; the budget recipe trains one embodiment per
+    run), "all" for the methods that train on every environment of the family."""
+    if run.get("method") != "st":
+        return "all"
     words = run.get("command", "").split()
-    return int(words[words.index("--train-env-id") + 1]) if "--train-env-id" in words else None
+    return int(words[words.index("--train-env-id") + 1]) if "--train-env-id" in words else 0
 
 
-def random_policy_return(family: str, env_id: int, episodes: int = 10, seed: int = 0) -> float:
-    """Mean return of uniformly random actions (the reference a learning curve must leave behind)."""
-    from common.envs import make_env
+def random_policy_return(family: str, env_id: int | str, episodes: int = 10, seed: int = 0) -> float:
+    """Mean return of uniformly random actions (the reference a learning curve must leave behind); env_id "all":
+    the mean over the family's environments, 2 episodes each."""
+    from common.envs import make_env, num_envs
 
+    if env_id == "all":
+        return sum(random_policy_return(family, j, episodes=2, seed=seed) for j in range(num_envs(family))) / num_envs(family)
     env, returns = make_env(family, env_id, seed=seed), []
     env.action_space.seed(seed)
     for episode in range(episodes):
@@ -158,27 +167,33 @@ def random_policy_return(family: str, env_id: int, episodes: int = 10, seed: int
 
 
 def training_curves(runs: list[dict], window: int = 2500) -> list[dict]:
-    """Learning curves of the ST runs, finished or not: the mean training-episode return (charts/episodic_return,
-    the planner with its exploration noise) per window of `window` agent steps, per seed, then across seeds."""
+    """Learning curves of the budget and Exp 1/2 runs (decoder recipe included), finished or not: the mean
+    training-episode return (charts/episodic_return: the planner with its exploration noise), and success where the
+    family has one, per window of `window` agent steps, per seed, then across seeds; one curve per method, family
+    and training environment (ST: its one; the others: "all")."""
     groups = defaultdict(list)
     for run in runs:
-        if run.get("method") == "st":  # the budget runs, and Exp 1/2's ST runs (does the single task learn by then?)
-            env_id = train_env_of(run)
-            groups[(run["method"], run["family"], 0 if env_id is None else env_id, run["size"])].append(run)  # 0: ST's default
+        if set(run.get("experiments", [])) & set(TRAINING_EXPERIMENTS) and run.get("method") not in CONTROLS:
+            groups[(run["method"], run["family"], train_env_of(run), run["size"])].append(run)
     rows = []
     for (method, family, env_id, size), members in sorted(groups.items(), key=lambda kv: str(kv[0])):
-        by_window = defaultdict(list)
+        by_window = {key: defaultdict(list) for key in reported_keys(family)}
         for run in members:
-            per_window = defaultdict(list)
-            for step, value in run["scalars"].get("charts/episodic_return", []):
-                per_window[math.ceil(step / window) * window].append(value)
-            for end, values in per_window.items():
-                by_window[end].append(sum(values) / len(values))
+            for key in by_window:
+                per_window = defaultdict(list)
+                for step, value in run["scalars"].get(f"charts/episodic_{key}", []):
+                    per_window[math.ceil(step / window) * window].append(value)
+                for end, values in per_window.items():
+                    by_window[key][end].append(sum(values) / len(values))
+        if not by_window["return"]:
+            continue
         random_return = random_policy_return(family, env_id)
-        for end, values in sorted(by_window.items()):
+        for end, values in sorted(by_window["return"].items()):
             mean, half = mean_ci(values)
+            success = by_window.get("success", {}).get(end)
             rows.append({"method": method, "family": family, "train_env": env_id, "size": size, "step": end, "n": len(values),
-                         "mean": mean, "ci95": half, "random_policy": random_return, "seeds": ",".join(str(r["seed"]) for r in members)})
+                         "mean": mean, "ci95": half, "success": sum(success) / len(success) if success else math.nan,
+                         "random_policy": random_return, "seeds": ",".join(str(r["seed"]) for r in members)})
     return rows
 
 
@@ -188,12 +203,13 @@ def ci_cell(half: float) -> str:
 
 
 def training_markdown(rows: list[dict]) -> str:
-    lines = ["| method | family | env | size | agent steps up to | seeds | mean training-episode return | 95% CI | x random policy |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| method | family | env | size | agent steps up to | seeds | mean training-episode return | 95% CI | x random policy | success |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         ratio = r["mean"] / r["random_policy"] if r["random_policy"] > 0 else float("nan")
+        success = "" if math.isnan(r["success"]) else f"{r['success']:.2f}"
         lines.append(f"| {r['method']} | {r['family']} | {r['train_env']} | {r['size']} | {r['step']} | {r['n']} | {r['mean']:.1f} | "
-                     f"{ci_cell(r['ci95'])} | {ratio:.1f} (random {r['random_policy']:.1f}) |")
+                     f"{ci_cell(r['ci95'])} | {ratio:.1f} (random {r['random_policy']:.1f}) | {success} |")
     return "\n".join(lines) + "\n"
 
 

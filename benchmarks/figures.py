@@ -8,7 +8,8 @@ exp3.png  Cheetah/Walker return vs base parameter count (log x) for CLAW, FiLM, 
 exp4.png  return vs LoRA rank, and vs adapter size as % of the world model, FiLM/Concat for reference
 exp5.png  Cheetah return: CLAW (joint) vs post-hoc hypernet
 controls.png  CLAW's (and CLAW + decoder's) return with its own minus with another environment's context, and return vs context size
-budget.png  ST training curves (experiment budget, and Exp 1/2's ST runs) beside the random policy's return
+training.png  training-episode return vs agent steps: ST per embodiment (experiment budget), and every method of
+              Exp 1/2 per family, beside the random policy's return
 A figure whose runs are missing is skipped with a message. Bands and error bars are 95% t-CIs.
 """
 from __future__ import annotations
@@ -242,23 +243,27 @@ def figure_exp5(rows, curves, out) -> str | None:
     return None
 
 
-def figure_budget(training, out) -> str | None:
-    """One panel per trained embodiment: mean training-episode return per step window, 95% CI band, random policy."""
-    embodiments = sorted({(r["family"], r["train_env"]) for r in training}, key=str)
-    if not embodiments:
-        return "budget: no ST runs"
-    fig, axes = plt.subplots(1, len(embodiments), figsize=(4.5 * len(embodiments), 3.5), squeeze=False)
-    for ax, (family, env_id) in zip(axes[0], embodiments):
+def figure_training(training, out) -> str | None:
+    """One panel per (family, training environment): each method's mean training-episode return per step window,
+    95% CI band, and the random policy's return."""
+    panels = sorted({(r["family"], r["train_env"]) for r in training}, key=str)
+    if not panels:
+        return "training: no budget or Exp 1/2 runs"
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.5), squeeze=False)
+    for ax, (family, env_id) in zip(axes[0], panels):
         points = [r for r in training if (r["family"], r["train_env"]) == (family, env_id)]
-        x, y = [p["step"] for p in points], [p["mean"] for p in points]
-        ax.plot(x, y, color=COLORS[points[0]["method"]], label=f"{LABELS[points[0]['method']]} (seeds {points[0]['seeds']})")
-        ax.fill_between(x, *_interval("return", points), color=COLORS[points[0]["method"]], alpha=0.15)
+        for method in sorted({p["method"] for p in points}, key=list(COLORS).index):
+            line = [p for p in points if p["method"] == method]
+            x, y = [p["step"] for p in line], [p["mean"] for p in line]
+            ax.plot(x, y, color=COLORS[method], label=f"{LABELS[method]} (seeds {line[0]['seeds']})")
+            ax.fill_between(x, *_interval("return", line), color=COLORS[method], alpha=0.15)
         ax.axhline(points[0]["random_policy"], color="gray", linestyle="--", label="random policy")
-        ax.set(title=f"{family} env {env_id}, size {points[0]['size']}", xlabel="agent steps", ylabel="training-episode return")
+        where = "all environments" if env_id == "all" else f"env {env_id}"
+        ax.set(title=f"{family}, {where}, size {points[0]['size']}", xlabel="agent steps", ylabel="training-episode return")
         ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value / 1000:g}k"))
         ax.legend(fontsize="small")
     fig.tight_layout()
-    fig.savefig(os.path.join(out, "budget.png"), dpi=120)
+    fig.savefig(os.path.join(out, "training.png"), dpi=120)
     return None
 
 
@@ -304,8 +309,8 @@ def main(argv=None):
     for figure in (figure_exp1, figure_exp2, figure_exp3, figure_exp4, figure_exp5):
         skipped = figure(rows, curves, out)
         print(f"skipped {skipped}" if skipped else f"wrote {os.path.join(out, figure.__name__[7:] + '.png')}")
-    skipped = figure_budget(training_curves(runs), out)
-    print(f"skipped {skipped}" if skipped else f"wrote {os.path.join(out, 'budget.png')}")
+    skipped = figure_training(training_curves(runs), out)
+    print(f"skipped {skipped}" if skipped else f"wrote {os.path.join(out, 'training.png')}")
     skipped = figure_controls(controls_rows(runs), out)
     print(f"skipped {skipped}" if skipped else f"wrote {os.path.join(out, 'controls.png')}")
 

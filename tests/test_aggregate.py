@@ -1,5 +1,6 @@
 """aggregate.py on synthetic runs with known answers: claim verdicts, context-control tables, ST training curves."""
 import json
+import math
 
 import pytest
 import scipy.stats
@@ -110,15 +111,26 @@ def test_controls_rows_average_environments_per_seed_then_across_seeds(tmp_path)
     assert figures.figure_controls(aggregate.controls_rows(runs), str(tmp_path)) is None and (tmp_path / "controls.png").stat().st_size > 0
 
 
-def test_exp12_st_runs_have_training_curves_beside_the_budget_runs(monkeypatch):
-    monkeypatch.setattr(aggregate, "random_policy_return", lambda family, env_id: 5.0)
-    runs = [{"method": "st", "family": "walker", "size": "F", "seed": s, "experiments": ["exp1", "exp2"],
-             "command": "python st_tdmpc2.py --family walker", "scalars": {"charts/episodic_return": [(2500, 10.0 * s)]}}
-            for s in (1, 2)]
-    runs.append({"method": "dr", "family": "walker", "size": "F", "seed": 1, "experiments": ["exp1"],
-                 "scalars": {"charts/episodic_return": [(2500, 99.0)]}})
+def test_exp12_runs_have_training_curves_per_method_beside_the_budget_runs(tmp_path, monkeypatch):
+    monkeypatch.setattr(aggregate, "random_policy_return", lambda family, env_id: 5.0 if env_id == "all" else 4.0)
+
+    def run(method, seed, returns, successes=(), experiments=("exp1", "exp2")):
+        return {"method": method, "family": "reach", "size": "F", "seed": seed, "experiments": list(experiments),
+                "command": f"python {method}_tdmpc2.py --family reach",
+                "scalars": {"charts/episodic_return": returns, "charts/episodic_success": list(successes)}}
+
+    runs = [run("st", s, [(2500, 10.0 * s)]) for s in (1, 2)]
+    runs += [run("dr", 1, [(1000, 90.0), (2000, 110.0), (4000, 50.0)], [(1000, 0.0), (2000, 1.0), (4000, 1.0)])]
+    runs += [run("oracle", 1, [(2500, 7.0)], experiments=("exp4",)), run("controls", 1, [(2500, 1.0)], experiments=("controls",))]
     rows = aggregate.training_curves(runs)
-    assert [(r["family"], r["train_env"], r["step"], r["n"], r["mean"]) for r in rows] == [("walker", 0, 2500, 2, 15.0)]
+    assert [(r["method"], r["train_env"], r["step"], r["n"], r["mean"], r["random_policy"]) for r in rows] == [
+        ("dr", "all", 2500, 1, 100.0, 5.0), ("dr", "all", 5000, 1, 50.0, 5.0), ("st", 0, 2500, 2, 15.0, 4.0)]
+    assert [r["success"] for r in rows[:2]] == [0.5, 1.0] and math.isnan(rows[2]["success"])
+    table = aggregate.training_markdown(rows)
+    assert "| dr | reach | all | F | 2500 | 1 | 100.0 | none (one sample) | 20.0 (random 5.0) | 0.50 |" in table
+    assert table.rstrip().endswith("| 3.8 (random 4.0) |  |")
+    assert figures.figure_training(rows, str(tmp_path)) is None and (tmp_path / "training.png").stat().st_size > 0
+    assert figures.figure_training([], str(tmp_path)) == "training: no budget or Exp 1/2 runs"
 
 
 def test_panel_grid_legend_lists_every_method_of_every_panel(tmp_path, monkeypatch):

@@ -434,7 +434,8 @@ def test_learn_recipes_and_budget_training_curves(monkeypatch):
                 "command": f"python st_tdmpc2.py --train-env-id {env_id}", "scalars": {"charts/episodic_return": returns}}
 
     runs = [run(0, 1, [(3000, 10.0), (5000, 30.0), (5500, 50.0)]), run(0, 2, [(4000, 20.0), (6000, 70.0)]),
-            run(1, 1, [(2600, 5.0)]), {"method": "claw", "experiments": ["exp1"], "scalars": {}}]
+            run(1, 1, [(2600, 5.0)]), {"method": "claw", "family": "cheetah_walker", "size": "F", "seed": 1,
+                                       "experiments": ["exp1"], "scalars": {}}]  # no training episode yet: no curve
     rows = aggregate.training_curves(runs, window=2500)
     assert [(r["train_env"], r["step"], r["n"], r["mean"]) for r in rows] == [(0, 5000, 2, 20.0), (0, 7500, 2, 60.0), (1, 5000, 1, 5.0)]
     assert [r["random_policy"] for r in rows] == [10.0, 10.0, 20.0]
