@@ -1,4 +1,4 @@
-"""aggregate.py on synthetic runs with known answers: claim verdicts, context-control tables, ST training curves."""
+"""aggregate.py on synthetic runs with known answers: claim verdicts, context-control tables, training curves."""
 import json
 import math
 
