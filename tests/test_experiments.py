@@ -81,9 +81,16 @@ def test_restarted_launcher_skips_live_runs_resumes_dead_ones_and_reports_change
         problems = dict(aggregate.summarize(aggregate.load_runs(str(tmp_path)))[2])
         assert problems[str(tmp_path / live.name)].startswith("still running")
         assert "it died" in problems[str(tmp_path / dead.name)]
+        # a second launcher shares the cores with the live run instead of taking them all (2 cores here)
+        monkeypatch.setattr(experiments.os, "cpu_count", lambda: 2)
+        capsys.readouterr()
+        assert experiments.local_threads(str(tmp_path), workers=1) == "1"
+        assert f"1 run(s) of another launcher live in {tmp_path} ({live.name})" in capsys.readouterr().out
     finally:
         os.close(held)
     assert not experiments.run_is_live(str(tmp_path / live.name))
+    assert experiments.local_threads(str(tmp_path), workers=1) == "2" and experiments.local_threads(str(tmp_path), workers=2) == "1"
+    assert "another launcher" not in capsys.readouterr().out
 
 
 def test_interrupted_runs_resume_before_new_runs_start(tmp_path):
