@@ -89,9 +89,10 @@ def panels(families, prefix):
 
 
 def save_panel_grid(families, prefix, draw, path):
-    """One subplot per `panels` entry; draw(ax, family, metric) fills it; one legend, right of the top row."""
+    """One subplot per `panels` entry; draw(ax, family, metric) fills it; one legend, below the grid."""
     grid = panels(families, prefix)
-    fig, axes = plt.subplots(len(grid), len(families), figsize=(4.5 * len(families) + 1.5, 3.5 * len(grid)), squeeze=False)
+    # constrained layout reserves room for an "outside" figure legend, so long labels no longer squeeze the panels
+    fig, axes = plt.subplots(len(grid), len(families), figsize=(4.5 * len(families), 3.5 * len(grid) + 0.8), squeeze=False, layout="constrained")
     for ax_row, panel_row in zip(axes, grid):
         for ax, panel in zip(ax_row, panel_row):
             if panel is None:
@@ -104,9 +105,8 @@ def save_panel_grid(families, prefix, draw, path):
     for ax in axes.flat:
         for handle, name in zip(*ax.get_legend_handles_labels()):
             handles.setdefault(name, handle)
-    axes[0][-1].legend(handles.values(), handles.keys(), loc="upper left", bbox_to_anchor=(1.02, 1), fontsize="small")  # outside: bands fill the panels
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncols=len(families), fontsize="small")  # outside: bands fill the panels
+    fig.savefig(path, dpi=120, bbox_inches="tight")  # "tight" keeps a legend wider than the panels whole
 
 
 def figure_exp1(rows, curves, out) -> str | None:

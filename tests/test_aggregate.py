@@ -143,5 +143,5 @@ def test_panel_grid_legend_lists_every_method_of_every_panel(tmp_path, monkeypat
     saved = []
     monkeypatch.setattr(figures.plt.Figure, "savefig", lambda fig, path, **kwargs: saved.append(fig))
     figures.save_panel_grid(["reach", "walker"], "online", draw, str(tmp_path / "grid.png"))
-    legend = saved[0].axes[1].get_legend()
+    legend = saved[0].legends[0]
     assert [text.get_text() for text in legend.get_texts()] == ["claw", "oracle", "dr"]
