@@ -386,7 +386,10 @@ class RunJob(submitit.helpers.Checkpointable):
                 except BaseException:  # SLURM requeue (SystemExit from submitit's signal handler) or Ctrl-C
                     self.stop()
                     raise
-            status = "interrupted" if _STOP.is_set() else "done" if returncode == 0 else "failed"
+            # a script ended by SIGTERM/SIGINT was stopped from outside (a session's end signals the scripts and the
+            # launcher together, so _STOP may not be set yet): it resumes from its checkpoint, it did not fail
+            stopped = _STOP.is_set() or returncode in (-signal.SIGTERM, -signal.SIGINT)
+            status = "interrupted" if stopped else "done" if returncode == 0 else "failed"
             if status == "done":
                 measure_checkpoint(run_dir, run.method, env)
             write_status(run_dir, run, command, status, resumed=bool(resume), returncode=returncode,

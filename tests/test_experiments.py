@@ -122,6 +122,11 @@ def test_run_job_resumes_a_dead_run_holding_its_lock(tmp_path, monkeypatch):
     delayed = experiments.RunJob().checkpoint(run, str(run_dir), {}, False, 120.0)
     assert isinstance(delayed.function, experiments.RunJob) and delayed.args == (run, str(run_dir), {}, False, 120.0)
     assert experiments.read_status(str(run_dir))["status"] == "requeued"
+    # a script killed by SIGTERM (a session's end) was interrupted, not failed: the next launcher resumes it
+    monkeypatch.setattr(experiments.Run, "command", lambda self, run_dir, cuda=False: [
+        experiments.sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGTERM)"])
+    assert experiments.RunJob()(run, str(run_dir), {}) == "interrupted"
+    assert experiments.read_status(str(run_dir))["returncode"] == -experiments.signal.SIGTERM
 
 
 def test_slurm_launcher_submits_one_array_with_the_cli_resources(tmp_path, monkeypatch, capsys):
