@@ -313,10 +313,11 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
         return found[0] if len(found) == 1 else {}
 
     def compare(label, a: dict, b: dict, track_of=None, paired=False):
-        if len(a) < 2 or len(b) < 2:
-            return {"label": label, "verdict": "missing", "text": f"{label}: runs missing ({len(a)} vs {len(b)} seeds)"}
+        seeds = sorted(set(a) & set(b))  # a paired difference needs both values from the same seed
+        if len(a) < 2 or len(b) < 2 or (paired and len(seeds) < 2):
+            have = f"{len(seeds)} seed(s) with both values" if paired else f"{len(a)} vs {len(b)} seeds"
+            return {"label": label, "verdict": "missing", "text": f"{label}: runs missing ({have})"}
         if paired:
-            seeds = sorted(set(a) & set(b))
             mean, low, high = difference_ci([a[s] for s in seeds], [b[s] for s in seeds], paired=True)
             n = f"paired over {len(seeds)} seeds"
         else:
