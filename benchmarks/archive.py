@@ -6,10 +6,20 @@ aggregated tables left, no per-seed values to pool with new seeds). An archived 
 TensorBoard scalars as JSON (scalars.json), its stdout.log, for an in-context method's run context_effect.md
 (`context_effect.py`: how much the context moves the world model's predictions, measured on the checkpoint), for a
 CLAW run inspect_adapters.txt (`inspect_adapters.py`: do u_con and the adapters tell the environments apart) and,
-for the context controls, controls.json and controls.md: ~100-200 kB for a 50,000-step run. `aggregate.py` and `figures.py` read an archive like a sweep directory, and
-`experiments.py --archive DIR` archives each run as it finishes and skips the runs the archive holds.
+for the context controls, controls.json and controls.md: ~100-200 kB for a 50,000-step run, and its checkpoint
+without the replay buffer and optimizer state (WEIGHTS: ~0.4 MB at size F, for evaluation only: the context controls
+of a CLAW run whose sweep directory is gone, re-measured reports, new evaluation-only analyses). `aggregate.py` and
+`figures.py` read an archive like a sweep directory, and `experiments.py --archive DIR` archives each run as it
+finishes and skips the runs the archive holds.
+
+A run longer than a machine lives (a session's machine is not always the next session's) is carried: with
+`experiments.py --carry DIR` the launcher copies a live run's directory (checkpoint, evaluation progress, events,
+stdout.log; ~15 MB at size F, mostly the replay buffer) to DIR/<run> each time the run saves progress, removes the
+copy once the run is archived, and, on a machine whose sweep directory lacks the run, copies DIR/<run> back before
+launching: the run resumes from its last checkpoint. Commit DIR before the machine goes.
 
     python benchmarks/archive.py /work/sweeps/learn results/learn/runs   # archive every finished run of a sweep
+    python benchmarks/archive.py /work/sweeps/learn results/learn/runs --carry results/learn/carry   # and carry the others
 """
 from __future__ import annotations
 
@@ -21,6 +31,9 @@ import shutil
 
 SCALARS = "scalars.json"
 KEPT = ("stdout.log", "context_effect.md", "inspect_adapters.txt", "controls.json", "controls.md")  # copied as they are, where the run wrote them
+WEIGHTS = "checkpoint.pt"  # in the archive: the run's checkpoint less what only training resumes from
+TRAINING_ONLY = ("replay", "optimizers")
+NOT_CARRIED = ("run.lock",)  # and the half-written files: *.tmp, *.partial
 
 
 def read_scalars(run_dir: str) -> tuple[dict, list]:
@@ -67,10 +80,46 @@ def archive_run(run_dir: str, archive: str) -> str:
     for name in KEPT:
         if os.path.isfile(os.path.join(run_dir, name)):
             shutil.copy2(os.path.join(run_dir, name), staging)
+    if os.path.isfile(os.path.join(run_dir, WEIGHTS)):
+        save_weights(os.path.join(run_dir, WEIGHTS), os.path.join(staging, WEIGHTS))
     shutil.copy2(os.path.join(run_dir, "run.json"), staging)  # last: a copy with run.json is complete
+    replace_dir(staging, target)
+    return target
+
+
+def save_weights(checkpoint: str, path: str) -> None:
+    """The checkpoint without its replay buffer and optimizer state: the scripts' evaluation tools read it as the
+    full one (--eval-only, context_controls.py, context_effect.py, inspect_adapters.py); training cannot resume from it."""
+    import torch
+
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    torch.save({**state, **{key: None for key in TRAINING_ONLY if key in state}}, path)
+
+
+def replace_dir(staging: str, target: str) -> None:
     shutil.rmtree(target, ignore_errors=True)
     os.replace(staging, target)
+
+
+def carry_run(run_dir: str, carry: str) -> str:
+    """Copies an unfinished run's directory to carry/<run name>/ (replacing an older copy); returns that path. The
+    scripts replace their checkpoint and progress files atomically, so each copied file is whole."""
+    target = os.path.join(carry, os.path.basename(os.path.normpath(run_dir)))
+    staging = target + ".tmp"
+    shutil.rmtree(staging, ignore_errors=True)
+    shutil.copytree(run_dir, staging, ignore=lambda _, names: [n for n in names if n in NOT_CARRIED or n.endswith((".tmp", ".partial"))])
+    replace_dir(staging, target)
     return target
+
+
+def restore_run(saved: str, root: str) -> bool:
+    """Copies a carried or archived run directory into root where root lacks that run; whether it did."""
+    target = os.path.join(root, os.path.basename(os.path.normpath(saved)))
+    if os.path.exists(target) or not os.path.isfile(os.path.join(saved, "run.json")):
+        return False
+    shutil.copytree(saved, target + ".tmp", dirs_exist_ok=True)
+    os.replace(target + ".tmp", target)
+    return True
 
 
 def is_archived(archive: str | None, name: str) -> bool:
@@ -84,8 +133,8 @@ def is_archived(archive: str | None, name: str) -> bool:
         return json.load(f).get("status") == "done"
 
 
-def archive_sweep(root: str, archive: str) -> int:
-    """Archives every finished run under root, printing the others; returns how many it archived."""
+def archive_sweep(root: str, archive: str, carry: str | None = None) -> int:
+    """Archives every finished run under root, printing (and with carry, carrying) the others; returns how many it archived."""
     archived = 0
     for name in sorted(os.listdir(root)):
         path = os.path.join(root, name, "run.json")
@@ -95,7 +144,11 @@ def archive_sweep(root: str, archive: str) -> int:
             status = json.load(f).get("status")
         if status == "done":
             archive_run(os.path.join(root, name), archive)
+            if carry:
+                shutil.rmtree(os.path.join(carry, name), ignore_errors=True)
             archived += 1
+        elif carry:
+            print(f"carried: {name} (status {status}) -> {carry_run(os.path.join(root, name), carry)}")
         else:
             print(f"not archived: {name} (status {status})")
     return archived
@@ -105,10 +158,12 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("root", help="sweep directory, e.g. /work/sweeps/learn")
     parser.add_argument("archive", help="archive directory, e.g. results/learn/runs")
+    parser.add_argument("--carry", default=None, metavar="DIR",
+                        help="also copy each unfinished run's directory to DIR (e.g. results/learn/carry), as experiments.py --carry does")
     cli = parser.parse_args(argv)
     if not os.path.isdir(cli.root):
         raise SystemExit(f"archive.py: error: {cli.root!r} is not a directory")
-    print(f"archived {archive_sweep(cli.root, cli.archive)} finished runs of {cli.root} in {cli.archive}")
+    print(f"archived {archive_sweep(cli.root, cli.archive, cli.carry)} finished runs of {cli.root} in {cli.archive}")
 
 
 if __name__ == "__main__":

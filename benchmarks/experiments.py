@@ -14,6 +14,9 @@ output in stdout.log there; local runs it on this machine, slurm as one task of 
 run.json beside each run (method, family, size, rank, seed, experiments, command, status). With --archive DIR
 (e.g. results/learn/runs, committed) each finished run's measurements, not its checkpoint, are also copied to DIR
 (benchmarks/archive.py), and the runs DIR holds are skipped: losing the sweep directory loses no finished run.
+With --carry DIR (e.g. results/learn/carry, committed) an unfinished run is not lost with its machine either: each
+time it saves progress its directory is copied to DIR, and a launcher whose sweep directory lacks it copies it back
+and resumes it; a controls run whose CLAW run is archived evaluates the archived weights.
 The process that runs a run holds run.lock in its directory (flock) for the run's lifetime, so a
 restarted launcher skips runs that are "done" or live (lock held) and resumes, with --resume, those
 that died (lock free, checkpoint present); it prints a finished run whose recorded command differs
@@ -65,7 +68,7 @@ import submitit
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)  # run as a script, benchmarks/ is not yet a package on the path
-from benchmarks.archive import archive_run, is_archived  # noqa: E402
+from benchmarks.archive import WEIGHTS, archive_run, carry_run, is_archived, restore_run  # noqa: E402
 
 SCRIPTS = {m: f"{m}_tdmpc2.py" for m in ("claw", "dr", "st", "oracle", "film", "concat", "posthoc")}
 SCRIPTS["controls"] = os.path.join("benchmarks", "context_controls.py")  # evaluation only: Run.command
@@ -309,6 +312,21 @@ def run_is_live(run_dir: str) -> bool:
     return False
 
 
+def progress_stamp(run_dir: str) -> tuple:
+    """When each of the run's progress files (checkpoint, evaluation or controls progress: *.pt) was last replaced."""
+    try:
+        names = sorted(n for n in os.listdir(run_dir) if n.endswith(".pt"))
+    except FileNotFoundError:
+        return ()
+    stamps = []
+    for name in names:
+        try:
+            stamps.append((name, os.stat(os.path.join(run_dir, name)).st_mtime_ns))
+        except FileNotFoundError:  # replaced meanwhile
+            pass
+    return tuple(stamps)
+
+
 def resume_args(run_dir: str) -> list[str]:
     checkpoint = os.path.join(run_dir, "checkpoint.pt")
     return ["--resume", checkpoint] if os.path.isfile(checkpoint) else []
@@ -350,9 +368,12 @@ class RunJob(submitit.helpers.Checkpointable):
     Returns the run's final status, or "busy" when another live process owns the run.
     """
 
-    def __init__(self, die_with_launcher: bool = False, archive: str | None = None):
+    CARRY_POLL_S = 30.0  # how often a live run's progress files are looked at for --carry
+
+    def __init__(self, die_with_launcher: bool = False, archive: str | None = None, carry: str | None = None):
         self.process = None
         self.archive = archive  # where a finished run's measurements are copied (benchmarks/archive.py), or None
+        self.carry = carry  # where an unfinished run's directory is copied as it saves progress, or None
         # local runs end with their launcher (SIGTERM on its death, via setpriv where it exists), as a
         # run that outlived it would finish unrecorded; SLURM ends a job's processes itself
         self.prefix = ["setpriv", "--pdeathsig", "TERM"] if die_with_launcher and shutil.which("setpriv") else []
@@ -378,11 +399,17 @@ class RunJob(submitit.helpers.Checkpointable):
                 # pass_fds: the script shares the lock (see lock_run)
                 self.process = subprocess.Popen(self.prefix + command + resume, cwd=REPO, env={**os.environ, **env},
                                                 stdout=log, stderr=subprocess.STDOUT, pass_fds=(fd,))
+                carried, next_look = progress_stamp(run_dir), time.monotonic() + self.CARRY_POLL_S
                 try:
                     # poll, not wait(): submitit's requeue handler runs checkpoint() -> stop() on this
                     # thread, and a nested wait() would block on the lock the outer wait() holds
                     while (returncode := self.process.poll()) is None:
                         time.sleep(0.5)
+                        if self.carry and time.monotonic() > next_look:
+                            next_look = time.monotonic() + self.CARRY_POLL_S
+                            if (stamp := progress_stamp(run_dir)) != carried:
+                                carried = stamp
+                                self.carry_progress(run_dir)
                 except BaseException:  # SLURM requeue (SystemExit from submitit's signal handler) or Ctrl-C
                     self.stop()
                     raise
@@ -397,11 +424,21 @@ class RunJob(submitit.helpers.Checkpointable):
             if status == "done" and self.archive:
                 try:
                     archive_run(run_dir, self.archive)
+                    if self.carry:  # archived: its carried copy has served
+                        shutil.rmtree(os.path.join(self.carry, run.name), ignore_errors=True)
                 except (OSError, ValueError) as error:  # the run is done all the same; benchmarks/archive.py can redo this
                     print(f"warning: {run.name} not archived: {error}", flush=True)
+            elif self.carry and progress_stamp(run_dir):
+                self.carry_progress(run_dir)
             return status
         finally:
             os.close(fd)
+
+    def carry_progress(self, run_dir: str) -> None:
+        try:
+            carry_run(run_dir, self.carry)
+        except OSError as error:  # the run goes on; the next progress file tries again
+            print(f"warning: {os.path.basename(run_dir)} not carried: {error}", flush=True)
 
     def stop(self, grace_s: float = 30.0):
         """Ends the script (SIGTERM, then SIGKILL), with bounded waits: it resumes from its last checkpoint."""
@@ -427,7 +464,7 @@ class RunJob(submitit.helpers.Checkpointable):
         if record.get("status") == "running":
             write_status(run_dir, run, run.command(run_dir, cuda), "requeued",
                          **{k: record[k] for k in ("slurm_job", "host") if k in record})
-        return submitit.helpers.DelayedSubmission(RunJob(archive=self.archive), run, run_dir, env, cuda, lock_wait_s)
+        return submitit.helpers.DelayedSubmission(RunJob(archive=self.archive, carry=self.carry), run, run_dir, env, cuda, lock_wait_s)
 
 
 def slurm_queued(job_id: str | None) -> bool:
@@ -464,7 +501,7 @@ def pending_runs(runs: list[Run], root: str, cuda: bool = False, archive: str | 
             print(f"skip (queued {record['slurm_job']}) {run.name}")
             continue
         if run.needs and read_status(os.path.join(root, run.needs)).get("status") != "done":
-            lost = " (archived without its checkpoint: delete it from the archive to retrain it)" if is_archived(archive, run.needs) else ""
+            lost = " (archived without its weights: delete it from the archive to retrain it)" if is_archived(archive, run.needs) else ""
             print(f"wait (needs {run.needs} done){lost} {run.name}")
             continue
         resume = resume_args(run_dir)
@@ -491,11 +528,26 @@ def local_threads(root: str, workers: int) -> str:
     return str(max(1, ((os.cpu_count() or 1) - len(live)) // workers))
 
 
+def restore_runs(runs: list[Run], root: str, archive: str | None, carry: str | None, dry_run: bool) -> None:
+    """Into a sweep directory that lacks them: the carried copies of unfinished runs (to resume), and the archived
+    weights of the finished runs that a run still to do needs (Run.needs)."""
+    sources = [os.path.join(carry, run.name) for run in runs if carry and not is_archived(archive, run.name)]
+    sources += [os.path.join(archive, run.needs) for run in runs if archive and run.needs and not is_archived(archive, run.name)
+                and is_archived(archive, run.needs) and os.path.isfile(os.path.join(archive, run.needs, WEIGHTS))]
+    for source in dict.fromkeys(sources):  # once each, in order
+        if os.path.isdir(source) and not os.path.exists(os.path.join(root, os.path.basename(source))):
+            if dry_run:
+                print(f"would restore {source}")
+            elif restore_run(source, root):
+                print(f"restored     {source} -> {root}")
+
+
 def launch(runs: list[Run], root: str, workers: int | None, dry_run: bool, launcher: str = "local",
-           slurm: dict | None = None, archive: str | None = None) -> int:
+           slurm: dict | None = None, archive: str | None = None, carry: str | None = None) -> int:
     """Run (local) or submit (slurm) every run not finished nor live nor archived; returns the number that failed."""
     slurm = slurm or {}
     cuda = slurm.get("gpus_per_task", 0) > 0
+    restore_runs(runs, root, archive, carry, dry_run)
     pending = pending_runs(runs, root, cuda, archive)
     if dry_run or not pending:
         return 0
@@ -508,15 +560,15 @@ def launch(runs: list[Run], root: str, workers: int | None, dry_run: bool, launc
         print(f"local: {workers or 1} run(s) at a time, OMP_NUM_THREADS={threads} each")
     env = {"OMP_NUM_THREADS": threads, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "disable")}
     if launcher == "slurm":
-        return submit_slurm(pending, root, env, cuda, workers, slurm, archive)
+        return submit_slurm(pending, root, env, cuda, workers, slurm, archive, carry)
     started = {run.name for run, _ in pending}
     waiting = [(run, os.path.join(root, run.name)) for run in runs if run.needs and run.name not in started
                and read_status(os.path.join(root, run.name)).get("status") != "done" and not is_archived(archive, run.name)]
-    return run_local(pending, env, workers or 1, waiting, archive)
+    return run_local(pending, env, workers or 1, waiting, archive, carry)
 
 
 def run_local(pending: list[tuple[Run, str]], env: dict, workers: int, waiting: list[tuple[Run, str]] = (),
-              archive: str | None = None) -> int:
+              archive: str | None = None, carry: str | None = None) -> int:
     """Runs on this machine, `workers` at a time; a waiting run (Run.needs) joins the front of the queue as soon
     as the run it needs is done, so one launcher call runs the evaluations of the checkpoints it trains.
 
@@ -542,7 +594,7 @@ def run_local(pending: list[tuple[Run, str]], env: dict, workers: int, waiting: 
             while running or (queue and not _STOP.is_set()):
                 while queue and len(running) < workers and not _STOP.is_set():
                     run, run_dir = queue.pop(0)
-                    job = RunJob(die_with_launcher=True, archive=archive)
+                    job = RunJob(die_with_launcher=True, archive=archive, carry=carry)
                     running[pool.submit(job, run, run_dir, env)] = (run, job)
                 done, _ = concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
                 for future in done:
@@ -566,7 +618,7 @@ def run_local(pending: list[tuple[Run, str]], env: dict, workers: int, waiting: 
 
 
 def submit_slurm(pending: list[tuple[Run, str]], root: str, env: dict, cuda: bool, workers: int | None,
-                 slurm: dict, archive: str | None = None) -> int:
+                 slurm: dict, archive: str | None = None, carry: str | None = None) -> int:
     """Submits the runs as one SLURM job array and returns; each array task runs RunJob on its node."""
     executor = submitit.SlurmExecutor(folder=os.path.join(root, ".submitit", "%j"), max_num_timeout=slurm.get("max_requeues", 3))
     parameters = {"job_name": "claw-sweep", "time": slurm.get("time", 60), "cpus_per_task": slurm.get("cpus_per_task", 1),
@@ -582,7 +634,7 @@ def submit_slurm(pending: list[tuple[Run, str]], root: str, env: dict, cuda: boo
     executor.update_parameters(**parameters)
     runs, run_dirs = zip(*pending)
     # a requeued job may start while the killed one's processes are still being reaped: wait for its lock
-    jobs = executor.map_array(RunJob(archive=archive), runs, run_dirs, [env] * len(runs), [cuda] * len(runs), [120.0] * len(runs))
+    jobs = executor.map_array(RunJob(archive=archive, carry=carry), runs, run_dirs, [env] * len(runs), [cuda] * len(runs), [120.0] * len(runs))
     for (run, run_dir), job in zip(pending, jobs):
         write_status(run_dir, run, run.command(run_dir, cuda), "queued", slurm_job=job.job_id,
                      slurm_log=str(job.paths.stdout))
@@ -622,6 +674,10 @@ def main(argv=None):
                         help="copy each finished run's measurements (not its checkpoint) to DIR, e.g. results/learn/runs, and skip"
                              " the runs DIR holds: commit DIR, and a sweep directory lost with its machine loses no finished run"
                              " (benchmarks/archive.py)")
+    parser.add_argument("--carry", default=None, metavar="DIR",
+                        help="copy each unfinished run's directory to DIR, e.g. results/learn/carry, whenever it saves progress,"
+                             " and restore from DIR the runs the sweep directory lacks: commit DIR, and a run outlives its"
+                             " machine (resumed from its last checkpoint by the next launcher); needs --archive")
     parser.add_argument("--dry-run", action="store_true", help="list the commands and exit")
     group = parser.add_argument_group("slurm", "options of --launcher slurm")
     group.add_argument("--partition", default=None)
@@ -677,7 +733,10 @@ def main(argv=None):
             and (cli.seeds is None or r.seed in cli.seeds)]
     print(f"{len(runs)} runs for {' '.join(cli.experiments)} at scale {cli.scale} in {root}")
     archive = os.path.abspath(cli.archive) if cli.archive else None
-    failed = launch(runs, os.path.abspath(root), cli.workers, cli.dry_run, cli.launcher, slurm, archive)
+    if cli.carry and not archive:
+        fail("--carry needs --archive: a carried run's copy is removed once the archive holds the run")
+    carry = os.path.abspath(cli.carry) if cli.carry else None
+    failed = launch(runs, os.path.abspath(root), cli.workers, cli.dry_run, cli.launcher, slurm, archive, carry)
     if failed:
         raise SystemExit(f"{failed} run(s) failed; see their stdout.log and run.json")
 

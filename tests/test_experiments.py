@@ -2,6 +2,8 @@
 import json
 import math
 import os
+import shlex
+import shutil
 
 import numpy as np
 import pytest
@@ -302,9 +304,9 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     assert sorted(os.listdir(archive)) == sorted(r.name for r in runs + [control])
     assert sorted(os.listdir(os.path.join(archive, control.name))) == ["controls.json", "controls.md", "run.json", "scalars.json", "stdout.log"]
     # a finished CLAW run's archive keeps what its context does to its predictions and whether its adapters tell the
-    # environments apart, both measured on the checkpoint it lacks
+    # environments apart, both measured on the full checkpoint, and its weights
     assert sorted(os.listdir(os.path.join(archive, runs[0].name))) == [
-        "context_effect.md", "inspect_adapters.txt", "run.json", "scalars.json", "stdout.log"]
+        "checkpoint.pt", "context_effect.md", "inspect_adapters.txt", "run.json", "scalars.json", "stdout.log"]
     effect_report = open(os.path.join(archive, runs[0].name, "context_effect.md")).read()
     assert "claw_tdmpc2.py, family reach" in effect_report and "| policy action |" in effect_report and "| swap / same |" in effect_report
     adapters_report = open(os.path.join(archive, runs[0].name, "inspect_adapters.txt")).read()
@@ -321,6 +323,50 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     fig_rows = [dict(r, method="dr") for r in curves]
     assert figures.figure_exp1(rows, curves + fig_rows, str(tmp_path)) is None
     assert os.path.getsize(tmp_path / "exp1.png") > 1000
+
+
+def test_carried_runs_outlive_their_machine_and_archived_weights_feed_the_controls(tmp_path, capsys, monkeypatch):
+    from benchmarks import archive as archive_module
+
+    run = [r for r in experiments.plan_runs(["exp1"], "smoke") if r.method == "claw"][0]
+    control = experiments.recipe("controls", "smoke")[0]
+    assert control.needs == run.name
+    archive, carry = str(tmp_path / "archive"), str(tmp_path / "carry")
+    carried = []
+    monkeypatch.setattr(experiments.RunJob, "CARRY_POLL_S", 0.1)
+    monkeypatch.setattr(experiments, "carry_run", lambda run_dir, to: carried.append(run_dir) or archive_module.carry_run(run_dir, to))
+    first = tmp_path / "first"  # a machine that trains the run, then is lost
+    assert experiments.launch([run], str(first), workers=1, dry_run=False, archive=archive, carry=carry) == 0
+    # copied while it ran (each time it saved progress), removed once archived
+    assert carried and set(carried) == {str(first / run.name)} and os.listdir(carry) == []
+    # the archive keeps the weights, not what only training resumes from
+    weights = torch.load(os.path.join(archive, run.name, "checkpoint.pt"), weights_only=False)
+    full = torch.load(first / run.name / "checkpoint.pt", weights_only=False)
+    assert weights["replay"] is None and weights["optimizers"] is None and full["replay"] is not None
+    assert all(torch.equal(weights["model"][k], v) for k, v in full["model"].items())
+    # a second machine: the controls evaluate the archived weights, without retraining the run
+    second = tmp_path / "second"
+    assert experiments.launch([run, control], str(second), workers=1, dry_run=False, archive=archive, carry=carry) == 0
+    out = capsys.readouterr().out
+    assert f"restored     {os.path.join(archive, run.name)} -> {second}" in out and f"skip (archived) {run.name}" in out
+    assert experiments.read_status(str(second / control.name))["status"] == "done" and experiments.is_archived(archive, control.name)
+    # an unfinished run's carried copy resumes from its checkpoint on a third machine, then leaves the carry directory
+    record = experiments.read_status(str(first / run.name))
+    experiments.write_status(str(first / run.name), run, shlex.split(record["command"]), "interrupted")
+    for name in os.listdir(archive):
+        shutil.rmtree(os.path.join(archive, name))
+    assert archive_module.archive_sweep(str(first), archive, carry) == 0 and os.listdir(carry) == [run.name]
+    assert "run.lock" not in os.listdir(os.path.join(carry, run.name))
+    third = tmp_path / "third"
+    assert experiments.launch([run], str(third), workers=1, dry_run=True, archive=archive, carry=carry) == 0
+    assert f"would restore {os.path.join(carry, run.name)}" in capsys.readouterr().out and not third.exists()
+    assert experiments.launch([run], str(third), workers=1, dry_run=False, archive=archive, carry=carry) == 0
+    out = capsys.readouterr().out
+    assert f"restored     {os.path.join(carry, run.name)} -> {third}" in out and f"resume " in out
+    assert experiments.read_status(str(third / run.name))["resumed"] is True and experiments.is_archived(archive, run.name)
+    assert os.listdir(carry) == []
+    with pytest.raises(SystemExit, match="--carry needs --archive"):
+        experiments.main(["exp1", "--scale", "smoke", "--carry", carry, "--dry-run"])
 
 
 def test_controls_recipe_evaluates_the_exp12_claw_checkpoints_once_they_are_done(tmp_path, capsys):
