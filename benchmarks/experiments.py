@@ -12,7 +12,7 @@ Every run is an ordinary script invocation with its own --run-dir under runs/swe
 output in stdout.log there; local runs it on this machine, slurm as one task of a job array
 (submitit), requeued on preemption or time-out to resume from its checkpoint. The launcher writes
 run.json beside each run (method, family, size, rank, seed, experiments, command, status). With --archive DIR
-(e.g. results/learn/runs, committed) each finished run's measurements, not its checkpoint, are also copied to DIR
+(e.g. results/learn/runs, committed) each finished run's measurements and weights (not its replay buffer) are also copied to DIR
 (benchmarks/archive.py), and the runs DIR holds are skipped: losing the sweep directory loses no finished run.
 With --carry DIR (e.g. results/learn/carry, committed) an unfinished run is not lost with its machine either: each
 time it saves progress its directory is copied to DIR, and a launcher whose sweep directory lacks it copies it back
@@ -671,7 +671,7 @@ def main(argv=None):
                         help="only these families' runs (as run names spell them: reach, walker, cheetah_walker, ...)")
     parser.add_argument("--seeds", nargs="+", type=int, default=None, metavar="SEED", help="only these seeds' runs")
     parser.add_argument("--archive", default=None, metavar="DIR",
-                        help="copy each finished run's measurements (not its checkpoint) to DIR, e.g. results/learn/runs, and skip"
+                        help="copy each finished run's measurements and weights (not its replay buffer) to DIR, e.g. results/learn/runs, and skip"
                              " the runs DIR holds: commit DIR, and a sweep directory lost with its machine loses no finished run"
                              " (benchmarks/archive.py)")
     parser.add_argument("--carry", default=None, metavar="DIR",
