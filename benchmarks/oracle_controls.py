@@ -119,9 +119,9 @@ def controls(path: str, swap_offset: int, env_ids, eval_episodes: int, plan=None
 
 
 def report(result: dict) -> str:
-    family, envs = result["family"], result["envs"]
+    family, envs, episodes = result["family"], result["envs"], result["identity"]["eval_episodes"]
     lines = [f"# Oracle told another environment's parameter: {result['checkpoint']}", "",
-             f"Exp 2 offline at 0 adaptation steps ({result['identity']['eval_episodes']} episodes per environment "
+             f"Exp 2 offline at 0 adaptation steps ({episodes} episode{'s' * (episodes != 1)} per environment "
              f"and arm); swap offset {result['identity']['swap_offset']}; 95% t-CIs over the {len(envs)} environments.", "",
              "| env j | its parameter | told env k's | own return | told k's | own - told k's |", "|---|---|---|---|---|---|"]
     for j, row in envs.items():
