@@ -82,7 +82,7 @@ def controls(path: str, swap_offset: int, env_ids, eval_episodes: int, plan=None
              log=print) -> dict:
     """{"envs": {j: {"told": k, "own": return, "swapped": return}}, "family": ..., "param": {j: [...]}}; with json_path
     each finished environment is saved, and a saved run of the same weights and settings is taken up."""
-    loaded = load(path)
+    plan, loaded = plan or oracle.plan, load(path)
     args, model, _ = loaded
     n = num_envs(args.family)
     env_ids = list(range(n)) if env_ids is None else list(env_ids)
@@ -106,8 +106,7 @@ def controls(path: str, swap_offset: int, env_ids, eval_episodes: int, plan=None
         if j in result["envs"]:
             continue
         k = (j + swap_offset) % n
-        own = arm_return(loaded, plan or oracle.plan, j, j, eval_episodes)
-        swapped = arm_return(loaded, plan or oracle.plan, j, k, eval_episodes)
+        own, swapped = (arm_return(loaded, plan, j, told, eval_episodes) for told in (j, k))
         result["envs"][j] = {"told": k, "own": own, "swapped": swapped}
         log(f"env {j} (parameter {shown(args.family, j)}): own {own:.1f}, told env {k}'s {shown(args.family, k)}: {swapped:.1f}")
         if json_path:  # atomic: an interruption never leaves half a file
