@@ -55,8 +55,11 @@ def load(path: str):
     saved = oracle.read_checkpoint(path)  # one line for a missing, corrupt or other script's checkpoint
     args = oracle.Args(**{k: v for k, v in saved["args"].items() if k in oracle.Args.__dataclass_fields__})
     args = dataclasses.replace(args, capture_video=False, cuda=False)
-    probe = make_env(args.family, 0, oracle=True)
-    obs_dim, act_dim = saved.get("dims") or (probe.observation_space.shape[0], probe.action_space.shape[0])
+    if saved.get("dims"):
+        obs_dim, act_dim = saved["dims"]
+    else:  # older checkpoints: the dimensions of the Oracle's evaluation environment
+        probe = make_env(args.family, 0, oracle=True)
+        obs_dim, act_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
     model = oracle.WorldModel(obs_dim, act_dim, args.model_size, args)
     oracle.load_checkpoint(path, model)
     return args, model.eval().requires_grad_(False), oracle.default_discount(args, episode_length(args.family))
@@ -80,7 +83,8 @@ def arm_return(loaded, plan, env_id: int, told_id: int, eval_episodes: int) -> f
 
 def controls(path: str, swap_offset: int, env_ids, eval_episodes: int, plan=None, json_path: str | None = None,
              log=print) -> dict:
-    """{"envs": {j: {"told": k, "own": return, "swapped": return}}, "family": ..., "param": {j: [...]}}; with json_path
+    """{"checkpoint", "family", "identity" (weights digest and settings), "envs": {j: {"told": k, "own": return,
+    "swapped": return}}}; with json_path
     each finished environment is saved, and a saved run of the same weights and settings is taken up."""
     plan, loaded = plan or oracle.plan, load(path)
     args, model, _ = loaded
