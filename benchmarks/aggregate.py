@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import glob
 import json
 import math
@@ -147,6 +148,7 @@ def train_env_of(run: dict) -> int | str:
     return int(words[words.index("--train-env-id") + 1]) if "--train-env-id" in words else 0
 
 
+@functools.cache  # every method's curve on a family shares one reference: roll it out once (minutes on Walker)
 def random_policy_return(family: str, env_id: int | str, episodes: int = 10, seed: int = 0) -> float:
     """Mean return of uniformly random actions (the reference a learning curve must leave behind); env_id "all":
     the mean over the family's environments, 2 episodes each."""
@@ -439,6 +441,8 @@ def main(argv=None):
     runs = load_runs(cli.roots)
     if not runs:
         raise SystemExit(f"error: no run.json under {' '.join(map(repr, cli.roots))}; run benchmarks/experiments.py first")
+    print(f"read {len(runs)} runs; the training curves roll out a random policy per family (minutes on Walker)",
+          file=sys.stderr, flush=True)
     rows, curves, problems = summarize(runs)
     write_csv(os.path.join(cli.root, "summary.csv"), rows)
     write_csv(os.path.join(cli.root, "curves.csv"), curves)
