@@ -203,7 +203,8 @@ def figure_exp4(rows, curves, out) -> str | None:
             if method == "film":  # FiLM spends a scale and a shift per world-model hidden feature
                 film_percent = 100 * film_parameters(size) / world_model
                 ax_pct.errorbar([film_percent], [r["mean"]], yerr=_yerr("return", [r]), color=COLORS[method], marker="s", capsize=3, label="FiLM")
-    ax_rank.set(xscale="log", xlabel="LoRA rank", ylabel="episode return", title=f"Cheetah/Walker, size {size}, {_seeds(select(cw, size=size))}")
+    drawn = claw + [r for r in select(cw, size=size) if r["method"] in ("film", "concat")]  # not post-hoc: Exp 5's
+    ax_rank.set(xscale="log", xlabel="LoRA rank", ylabel="episode return", title=f"Cheetah/Walker, size {size}, {_seeds(drawn)}")
     ax_pct.set(xscale="log", xlabel="adapter size (% of world model)", ylabel="episode return")
     for ax in (ax_rank, ax_pct):  # plain numbers at the data points, not 4x10^0 minor ticks
         ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))

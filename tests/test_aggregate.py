@@ -151,3 +151,15 @@ def test_panel_grid_legend_lists_every_method_of_every_panel(tmp_path, monkeypat
     figures.save_panel_grid(["reach", "walker"], "online", draw, str(tmp_path / "grid.png"))
     legend = saved[0].legends[0]
     assert [text.get_text() for text in legend.get_texts()] == ["claw", "oracle", "dr"]
+
+
+def test_exp4_title_counts_the_seeds_of_the_methods_it_draws(tmp_path, monkeypatch):
+    def row(method, rank, n):
+        return {"method": method, "family": "cheetah_walker", "size": "F", "rank": rank, "metric": "online_return",
+                "mean": 150.0, "n": n, "ci95": 20.0}
+
+    rows = [row("claw", 1, 2), row("claw", 4, 2), row("film", 8, 2), row("concat", 8, 2), row("posthoc", 8, 1)]
+    saved = []
+    monkeypatch.setattr(figures.plt.Figure, "savefig", lambda fig, path, **kwargs: saved.append(fig))
+    assert figures.figure_exp4(rows, [], str(tmp_path)) is None
+    assert saved[0].axes[0].get_title() == "Cheetah/Walker, size F, n = 2"  # post-hoc's one seed is Exp 5's, not drawn here
