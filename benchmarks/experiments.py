@@ -122,7 +122,9 @@ SCALES = {
         "exp12": ["--offline-adapt-steps", "0", "1", "10", "100", "1000"],
         "exp12_family": {"reach": ["--total-timesteps", "50000", "--online-eval-steps", "2000"],
                          "walker": ["--total-timesteps", "50000", "--online-eval-steps", "1000", "--eval-episodes", "2"]},
-        "budget": ["--total-timesteps", "40000", "--no-evaluate-after-training"], "budget_seeds": (1, 2),
+        "budget": ["--no-evaluate-after-training"], "budget_seeds": (1, 2),
+        # family -> (ST's training environments, agent steps): Cheetah/Walker each embodiment; Push one goal, Go1 forward
+        "budget_families": {"cheetah_walker": ((0, 1), 40000), "push": ((0,), 100000), "go1": ((0,), 100000)},
         "exp3_sizes": ("F",), "exp4_size": "F", "exp4_ranks": (1, 4, 8, 16),
         "exp345": ["--total-timesteps", "40000", "--online-eval-steps", "5000"],  # 2 x the 20,000-step budget
         # the Exp 1/2 evaluation of each family; the compiled planner: ~1.7x faster evaluation at size F
@@ -196,12 +198,14 @@ def recipe(experiment: str, scale: str) -> list[Run]:
         runs += controls_recipe(s, "controls_decoder")
     elif experiment == "controls":  # evaluation only: the Exp 1/2 CLAW runs' checkpoints
         runs = controls_recipe(s, "controls")
-    elif experiment == "budget":  # single-task learning curves on each Cheetah/Walker embodiment
+    elif experiment == "budget":  # single-task learning curves: each Cheetah/Walker embodiment, one Push goal, Go1 forward
         if "budget" not in s:
             raise SystemExit(f"error: experiment budget is defined at scale learn only, not {scale}")
-        for env_id in (0, 1):
-            for seed in s["budget_seeds"]:
-                runs.append(Run("st", "cheetah_walker", "F", SIZE_RANKS["F"], seed, s["common"] + s["budget"], train_env=env_id))
+        for seed in s["budget_seeds"]:  # seed-major, as Exp 1/2: a cut-short check holds every family at n seeds first
+            for family, (env_ids, steps) in s["budget_families"].items():
+                for env_id in env_ids:
+                    extra = s["common"] + ["--total-timesteps", str(steps)] + s["budget"]
+                    runs.append(Run("st", family, "F", SIZE_RANKS["F"], seed, extra, train_env=env_id))
     elif "exp345" not in s:
         raise SystemExit(f"error: {experiment} at scale {scale} waits for its per-embodiment budget (experiment budget)")
     elif experiment == "exp3":
