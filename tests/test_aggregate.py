@@ -5,7 +5,7 @@ import math
 import pytest
 import scipy.stats
 
-from benchmarks import aggregate, figures
+from experiments import aggregate, figures
 from common.evaluation import mean_ci
 
 

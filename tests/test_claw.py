@@ -245,7 +245,7 @@ def test_context_pool_has_no_buffer_identity_shortcut():
     pools apart. For a randomly initialised hypernet, u_con of draws from the pool (whole episodes, as
     at test time) is as far apart between pools as within one (ratio ~1); 256-transition resamples of a
     fixed 10-episode buffer (the previous pipeline) are told apart by buffer identity alone."""
-    from benchmarks.inspect_adapters import between_within
+    from diagnostics.inspect_adapters import between_within
 
     torch.manual_seed(0)
     args, model, hypernet, *_ = build(obs_dim=39, act_dim=4, size="I", rank=2)
@@ -260,7 +260,7 @@ def test_context_pool_has_no_buffer_identity_shortcut():
 
 
 def test_merged_update_sizes_measure_what_adapted_weights_adds():
-    from benchmarks.inspect_adapters import merged_update_sizes
+    from diagnostics.inspect_adapters import merged_update_sizes
 
     torch.manual_seed(0)
     args, model, hypernet, layout, *_ = build(obs_dim=39, act_dim=4, size="I", rank=2)

@@ -1,4 +1,4 @@
-"""benchmarks/context_controls.py: the own arm is CLAW's evaluation, the swapped arm feeds another environment's
+"""diagnostics/context_controls.py: the own arm is CLAW's evaluation, the swapped arm feeds another environment's
 context, arms are deterministic, and bad checkpoints are one-line errors."""
 import json
 import os
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import claw_tdmpc2 as claw
-from benchmarks import context_controls
+from diagnostics import context_controls
 from common.context import collect_episodes
 from common.envs import make_env
 from common.evaluation import offline_adaptation

@@ -10,7 +10,9 @@ import pytest
 import scipy.stats
 import torch
 
-from benchmarks import aggregate, context_effect, context_identifiability, decoder_signal, experiments, figures
+from experiments import aggregate, figures, sweep
+
+from diagnostics import context_effect, context_identifiability, decoder_signal
 from common.evaluation import mean_ci
 
 
@@ -26,85 +28,85 @@ def test_mean_ci_matches_scipy_on_known_numbers():
 
 
 def test_paper_recipes_follow_the_tables():
-    exp12 = experiments.plan_runs(["exp1", "exp2"], "paper")
+    exp12 = sweep.plan_runs(["exp1", "exp2"], "paper")
     assert len(exp12) == 4 * 4 * 5  # families x methods x seeds, shared by both experiments
     assert all(r.experiments == ["exp1", "exp2"] and r.size == "A" and r.rank == 16 for r in exp12)
     assert [r.seed for r in exp12[:16]] == [1] * 16  # seed-major: all families and methods at seed 1 first
-    exp3 = experiments.recipe("exp3", "paper")
-    assert {(r.size, r.rank) for r in exp3 if r.method == "claw"} == set(experiments.SIZE_RANKS.items())
+    exp3 = sweep.recipe("exp3", "paper")
+    assert {(r.size, r.rank) for r in exp3 if r.method == "claw"} == set(sweep.SIZE_RANKS.items())
     # Exp 3's size-F CLAW runs are Exp 4's rank-8 and Exp 5's CLAW runs: planned once
-    shared = experiments.plan_runs(["exp3", "exp4", "exp5"], "paper")
+    shared = sweep.plan_runs(["exp3", "exp4", "exp5"], "paper")
     claw_f8 = [r for r in shared if r.method == "claw" and r.size == "F" and r.rank == 8]
     assert len(claw_f8) == 5 and all(r.experiments == ["exp3", "exp4", "exp5"] for r in claw_f8)
-    assert "--offline-adapt-steps" not in experiments.recipe("exp1", "cpu")[0].command("x")  # CLAW has no sweep
+    assert "--offline-adapt-steps" not in sweep.recipe("exp1", "cpu")[0].command("x")  # CLAW has no sweep
 
 
 def test_launcher_dry_run_lists_commands_and_skips_finished(tmp_path, capsys):
-    runs = experiments.plan_runs(["exp1"], "smoke")
+    runs = sweep.plan_runs(["exp1"], "smoke")
     done_dir = tmp_path / runs[0].name
-    experiments.write_status(str(done_dir), runs[0], runs[0].command(str(done_dir)), "done")
+    sweep.write_status(str(done_dir), runs[0], runs[0].command(str(done_dir)), "done")
     interrupted = tmp_path / runs[1].name
     interrupted.mkdir()
     (interrupted / "checkpoint.pt").write_bytes(b"")
-    assert experiments.launch(runs, str(tmp_path), workers=2, dry_run=True) == 0
+    assert sweep.launch(runs, str(tmp_path), workers=2, dry_run=True) == 0
     out = capsys.readouterr().out
     assert f"skip (done)  {runs[0].name}" in out
     assert f"--resume {interrupted / 'checkpoint.pt'}" in out
     assert out.count("claw_tdmpc2.py") == len([r for r in runs if r.method == "claw"]) - 1
     with pytest.raises(SystemExit, match="unknown experiment"):
-        experiments.recipe("exp9", "paper")
+        sweep.recipe("exp9", "paper")
 
 
 def test_restarted_launcher_skips_live_runs_resumes_dead_ones_and_reports_changed_recipes(tmp_path, capsys, monkeypatch):
-    live, dead, done, queued = experiments.plan_runs(["exp1"], "smoke")[:4]
+    live, dead, done, queued = sweep.plan_runs(["exp1"], "smoke")[:4]
     for run in (live, dead):
-        experiments.write_status(str(tmp_path / run.name), run, run.command(str(tmp_path / run.name)), "running")
-    held = experiments.lock_run(str(tmp_path / live.name))  # a live process (the first launcher's) owns it
+        sweep.write_status(str(tmp_path / run.name), run, run.command(str(tmp_path / run.name)), "running")
+    held = sweep.lock_run(str(tmp_path / live.name))  # a live process (the first launcher's) owns it
     (tmp_path / dead.name / "run.lock").touch()  # its process died: the lock file stays, the lock does not
     (tmp_path / dead.name / "checkpoint.pt").write_bytes(b"")
     changed = done.command(str(tmp_path / done.name))
     changed[changed.index("--total-timesteps") + 1] = "999"
-    experiments.write_status(str(tmp_path / done.name), done, changed, "done")
-    experiments.write_status(str(tmp_path / queued.name), queued, queued.command(str(tmp_path / queued.name)), "queued",
+    sweep.write_status(str(tmp_path / done.name), done, changed, "done")
+    sweep.write_status(str(tmp_path / queued.name), queued, queued.command(str(tmp_path / queued.name)), "queued",
                              slurm_job="12_3")  # submitted by an earlier launcher, still pending in SLURM
-    monkeypatch.setattr(experiments, "slurm_queued", lambda job_id: job_id == "12_3")
+    monkeypatch.setattr(sweep, "slurm_queued", lambda job_id: job_id == "12_3")
     try:
-        pending = experiments.pending_runs([live, dead, done, queued], str(tmp_path))
+        pending = sweep.pending_runs([live, dead, done, queued], str(tmp_path))
         assert [run for run, _ in pending] == [dead]
         out = capsys.readouterr().out
         assert f"skip (running) {live.name}" in out and f"skip (done)  {done.name}" in out
         assert f"skip (queued 12_3) {queued.name}" in out
         assert f"changed      {done.name}" in out and "--total-timesteps 999" in out
-        assert f"resume {experiments.shlex.join(dead.command(str(tmp_path / dead.name)))} --resume " in out
+        assert f"resume {sweep.shlex.join(dead.command(str(tmp_path / dead.name)))} --resume " in out
         # the run itself checks the lock too (a second launcher's job racing the first): no process starts
-        assert experiments.RunJob()(live, str(tmp_path / live.name), {}) == "busy"
+        assert sweep.RunJob()(live, str(tmp_path / live.name), {}) == "busy"
         assert not (tmp_path / live.name / "stdout.log").exists()
-        assert experiments.run_is_live(str(tmp_path / live.name)) and not experiments.run_is_live(str(tmp_path / dead.name))
+        assert sweep.run_is_live(str(tmp_path / live.name)) and not sweep.run_is_live(str(tmp_path / dead.name))
         problems = dict(aggregate.summarize(aggregate.load_runs(str(tmp_path)))[2])
         assert problems[str(tmp_path / live.name)].startswith("still running")
         assert "it died" in problems[str(tmp_path / dead.name)]
         # a second launcher shares the cores with the live run instead of taking them all (2 cores here)
-        monkeypatch.setattr(experiments.os, "cpu_count", lambda: 2)
+        monkeypatch.setattr(sweep.os, "cpu_count", lambda: 2)
         capsys.readouterr()
-        assert experiments.local_threads(str(tmp_path), workers=1) == "1"
+        assert sweep.local_threads(str(tmp_path), workers=1) == "1"
         assert f"1 run(s) of another launcher live in {tmp_path} ({live.name})" in capsys.readouterr().out
     finally:
         os.close(held)
-    assert not experiments.run_is_live(str(tmp_path / live.name))
-    assert experiments.local_threads(str(tmp_path), workers=1) == "2" and experiments.local_threads(str(tmp_path), workers=2) == "1"
+    assert not sweep.run_is_live(str(tmp_path / live.name))
+    assert sweep.local_threads(str(tmp_path), workers=1) == "2" and sweep.local_threads(str(tmp_path), workers=2) == "1"
     assert "another launcher" not in capsys.readouterr().out
 
 
 def test_interrupted_runs_resume_before_new_runs_start(tmp_path):
-    first, second, third = experiments.plan_runs(["exp1"], "smoke")[:3]
+    first, second, third = sweep.plan_runs(["exp1"], "smoke")[:3]
     (tmp_path / third.name).mkdir()
     (tmp_path / third.name / "checkpoint.pt").write_bytes(b"")  # cut by the previous launcher's stop
-    pending = experiments.pending_runs([first, second, third], str(tmp_path))
+    pending = sweep.pending_runs([first, second, third], str(tmp_path))
     assert [run for run, _ in pending] == [third, first, second]
 
 
 def test_run_job_resumes_a_dead_run_holding_its_lock(tmp_path, monkeypatch):
-    run = experiments.plan_runs(["exp1"], "smoke")[0]
+    run = sweep.plan_runs(["exp1"], "smoke")[0]
     run_dir = tmp_path / run.name
     run_dir.mkdir()
     (run_dir / "checkpoint.pt").write_bytes(b"")
@@ -112,29 +114,29 @@ def test_run_job_resumes_a_dead_run_holding_its_lock(tmp_path, monkeypatch):
     probe = ("import fcntl, os, sys; fd = os.open(os.path.join(os.path.dirname(sys.argv[-1]), 'run.lock'), os.O_RDWR)\n"
              "try: fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB); print('lock free')\n"
              "except BlockingIOError: print('lock held')\nprint(sys.argv[1:])")
-    monkeypatch.setattr(experiments.Run, "command", lambda self, run_dir, cuda=False: [experiments.sys.executable, "-c", probe])
-    assert experiments.RunJob()(run, str(run_dir), {"OMP_NUM_THREADS": "1"}) == "done"
+    monkeypatch.setattr(sweep.Run, "command", lambda self, run_dir, cuda=False: [sweep.sys.executable, "-c", probe])
+    assert sweep.RunJob()(run, str(run_dir), {"OMP_NUM_THREADS": "1"}) == "done"
     log = (run_dir / "stdout.log").read_text()
     assert "lock held" in log and f"'--resume', '{run_dir / 'checkpoint.pt'}'" in log
-    record = experiments.read_status(str(run_dir))
+    record = sweep.read_status(str(run_dir))
     assert record["status"] == "done" and record["resumed"] and record["returncode"] == 0
     assert "--resume" not in record["command"]  # the recipe's command, compared on restarts
     # preemption: submitit requeues the same run, which then resumes from its checkpoint
-    experiments.write_status(str(run_dir), run, ["x"], "running")
-    delayed = experiments.RunJob().checkpoint(run, str(run_dir), {}, False, 120.0)
-    assert isinstance(delayed.function, experiments.RunJob) and delayed.args == (run, str(run_dir), {}, False, 120.0)
-    assert experiments.read_status(str(run_dir))["status"] == "requeued"
+    sweep.write_status(str(run_dir), run, ["x"], "running")
+    delayed = sweep.RunJob().checkpoint(run, str(run_dir), {}, False, 120.0)
+    assert isinstance(delayed.function, sweep.RunJob) and delayed.args == (run, str(run_dir), {}, False, 120.0)
+    assert sweep.read_status(str(run_dir))["status"] == "requeued"
     # a script killed by SIGTERM (a session's end) was interrupted, not failed: the next launcher resumes it
-    monkeypatch.setattr(experiments.Run, "command", lambda self, run_dir, cuda=False: [
-        experiments.sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGTERM)"])
-    assert experiments.RunJob()(run, str(run_dir), {}) == "interrupted"
-    assert experiments.read_status(str(run_dir))["returncode"] == -experiments.signal.SIGTERM
+    monkeypatch.setattr(sweep.Run, "command", lambda self, run_dir, cuda=False: [
+        sweep.sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGTERM)"])
+    assert sweep.RunJob()(run, str(run_dir), {}) == "interrupted"
+    assert sweep.read_status(str(run_dir))["returncode"] == -sweep.signal.SIGTERM
 
 
 def test_slurm_launcher_submits_one_array_with_the_cli_resources(tmp_path, monkeypatch, capsys):
     submitted = {}
 
-    class FakeExecutor:  # stands in for submitit.SlurmExecutor (CI runs the real one: benchmarks/slurm_ci.sh)
+    class FakeExecutor:  # stands in for submitit.SlurmExecutor (CI runs the real one: experiments/slurm_ci.sh)
         def __init__(self, folder, max_num_timeout):
             submitted.update(folder=folder, max_num_timeout=max_num_timeout)
 
@@ -146,21 +148,21 @@ def test_slurm_launcher_submits_one_array_with_the_cli_resources(tmp_path, monke
             return [type("Job", (), {"job_id": f"7_{i}", "paths": type("P", (), {"stdout": f"log{i}"})})()
                     for i in range(len(columns[0]))]
 
-    monkeypatch.setattr(experiments.submitit, "SlurmExecutor", FakeExecutor)
-    monkeypatch.setattr(experiments.shutil, "which", lambda name: "/usr/bin/" + name)
-    monkeypatch.setattr(experiments, "slurm_queued", lambda job_id: False)
+    monkeypatch.setattr(sweep.submitit, "SlurmExecutor", FakeExecutor)
+    monkeypatch.setattr(sweep.shutil, "which", lambda name: "/usr/bin/" + name)
+    monkeypatch.setattr(sweep, "slurm_queued", lambda job_id: False)
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    experiments.main(["exp1", "--scale", "smoke", "--methods", "claw", "--launcher", "slurm", "--root", str(tmp_path),
+    sweep.main(["exp1", "--scale", "smoke", "--methods", "claw", "--launcher", "slurm", "--root", str(tmp_path),
                       "--partition", "gpu", "--time", "2:00:00", "--cpus-per-task", "4", "--gpus-per-task", "1",
                       "--workers", "8", "--sbatch", "qos=high", "--sbatch", "mem-per-cpu=2G"])
     parameters = submitted["parameters"]
     assert (parameters["partition"], parameters["time"], parameters["cpus_per_task"], parameters["gpus_per_task"]) == ("gpu", 120, 4, 1)
     assert parameters["array_parallelism"] == 8 and parameters["additional_parameters"] == {"qos": "high", "mem_per_cpu": "2G"}
-    assert isinstance(submitted["fn"], experiments.RunJob)
+    assert isinstance(submitted["fn"], sweep.RunJob)
     runs, run_dirs, envs, cudas, _ = submitted["columns"]
     assert len(runs) == 2 and all(cudas) and envs[0]["OMP_NUM_THREADS"] == "4"  # threads follow --cpus-per-task
-    assert [experiments.read_status(d)["slurm_job"] for d in run_dirs] == ["7_0", "7_1"]
-    assert all(experiments.read_status(d)["status"] == "queued" for d in run_dirs)
+    assert [sweep.read_status(d)["slurm_job"] for d in run_dirs] == ["7_0", "7_1"]
+    assert all(sweep.read_status(d)["status"] == "queued" for d in run_dirs)
     assert "submitted 2 runs as SLURM job array 7" in capsys.readouterr().out
 
 
@@ -172,14 +174,14 @@ def test_launcher_arguments_fail_in_one_line(capsys):
                           (["--families", "reech", "--dry-run"], "--families reech: not in these recipes .they have go1 push reach walker."),
                           (["--seeds", "0", "9", "--dry-run"], "--seeds 0 9: not in these recipes .they have 1 2 3 4 5.")):
         with pytest.raises(SystemExit, match=message):
-            experiments.main(["exp1", *argv])
-    assert [experiments.parse_minutes(t) for t in ("90", "01:30:00", "1:00:01", "2-00:30")] == [90, 90, 61, 2910]
-    experiments.main(["exp1", "--scale", "smoke", "--launcher", "slurm", "--dry-run", "--gpus-per-task", "1", "--root", "x"])
+            sweep.main(["exp1", *argv])
+    assert [sweep.parse_minutes(t) for t in ("90", "01:30:00", "1:00:01", "2-00:30")] == [90, 90, 61, 2910]
+    sweep.main(["exp1", "--scale", "smoke", "--launcher", "slurm", "--dry-run", "--gpus-per-task", "1", "--root", "x"])
     assert "--no-cuda" not in capsys.readouterr().out  # GPU runs use CUDA
 
 
 def test_family_and_seed_filters_pick_the_runs_a_launcher_starts(tmp_path, capsys):
-    experiments.main(["exp1", "decoder", "--scale", "learn", "--families", "reach", "--seeds", "2", "3", "--methods", "claw", "claw_decoder",
+    sweep.main(["exp1", "decoder", "--scale", "learn", "--families", "reach", "--seeds", "2", "3", "--methods", "claw", "claw_decoder",
                       "--dry-run", "--root", str(tmp_path)])
     out = capsys.readouterr().out
     assert out.startswith("4 runs for exp1 decoder at scale learn")  # not the decoder's controls_decoder runs
@@ -276,12 +278,12 @@ def test_context_effect_tells_context_use_from_adaptation():
 
 
 def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
-    runs = [r for r in experiments.plan_runs(["exp1"], "smoke") if r.method == "claw"]
+    runs = [r for r in sweep.plan_runs(["exp1"], "smoke") if r.method == "claw"]
     assert len(runs) == 2
-    control = experiments.recipe("controls", "smoke")[0]  # evaluates runs[0]'s checkpoint: waits for it
+    control = sweep.recipe("controls", "smoke")[0]  # evaluates runs[0]'s checkpoint: waits for it
     assert control.needs == runs[0].name
     archive = str(tmp_path / "archive")
-    assert experiments.launch(runs + [control], str(tmp_path), workers=2, dry_run=False, archive=archive) == 0
+    assert sweep.launch(runs + [control], str(tmp_path), workers=2, dry_run=False, archive=archive) == 0
     out = capsys.readouterr().out  # the control waits, then runs in the same call once its checkpoint is done
     assert f"wait (needs {runs[0].name} done) {control.name}" in out and f"ready        {control.name}" in out
     assert all(json.load(open(tmp_path / r.name / "run.json"))["status"] == "done" for r in runs + [control])
@@ -292,7 +294,7 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     assert figures.figure_exp1(rows, curves, str(tmp_path)) == "exp1: no DR/ST/Oracle runs"
     effect = context_effect.main([str(tmp_path / runs[0].name / "checkpoint.pt"), "--episodes", "1", "--draws", "2", "--batch", "8"])
     assert sorted(effect) == list(range(6)) and "| policy action |" in capsys.readouterr().out
-    assert experiments.launch(runs + [control], str(tmp_path), workers=1, dry_run=False) == 0  # a second call: nothing left
+    assert sweep.launch(runs + [control], str(tmp_path), workers=1, dry_run=False) == 0  # a second call: nothing left
     out = capsys.readouterr().out
     assert f"skip (done)  {runs[0].name}" in out and f"skip (done)  {control.name}" in out and "ready" not in out
     result = json.load(open(tmp_path / control.name / "controls.json"))
@@ -316,7 +318,7 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     assert repr(aggregate.controls_rows(archived_runs)) == repr(aggregate.controls_rows(sweep_runs)) != "[]"  # repr: nan == nan
     assert [r["dir"] for r in aggregate.load_runs([str(tmp_path / "lost"), archive, str(tmp_path)])] == [
         os.path.join(archive, r.name) for r in sorted(runs + [control], key=lambda r: r.name)]  # each run once
-    assert experiments.launch(runs + [control], str(tmp_path / "lost"), workers=1, dry_run=False, archive=archive) == 0
+    assert sweep.launch(runs + [control], str(tmp_path / "lost"), workers=1, dry_run=False, archive=archive) == 0
     out = capsys.readouterr().out
     assert all(f"skip (archived) {r.name}" in out for r in runs + [control]) and not (tmp_path / "lost").exists()
     # a CLAW-only sweep still draws its curves
@@ -326,17 +328,17 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
 
 
 def test_carried_runs_outlive_their_machine_and_archived_weights_feed_the_controls(tmp_path, capsys, monkeypatch):
-    from benchmarks import archive as archive_module
+    from experiments import archive as archive_module
 
-    run = [r for r in experiments.plan_runs(["exp1"], "smoke") if r.method == "claw"][0]
-    control = experiments.recipe("controls", "smoke")[0]
+    run = [r for r in sweep.plan_runs(["exp1"], "smoke") if r.method == "claw"][0]
+    control = sweep.recipe("controls", "smoke")[0]
     assert control.needs == run.name
     archive, carry = str(tmp_path / "archive"), str(tmp_path / "carry")
     carried = []
-    monkeypatch.setattr(experiments.RunJob, "CARRY_POLL_S", 0.1)
-    monkeypatch.setattr(experiments, "carry_run", lambda run_dir, to: carried.append(run_dir) or archive_module.carry_run(run_dir, to))
+    monkeypatch.setattr(sweep.RunJob, "CARRY_POLL_S", 0.1)
+    monkeypatch.setattr(sweep, "carry_run", lambda run_dir, to: carried.append(run_dir) or archive_module.carry_run(run_dir, to))
     first = tmp_path / "first"  # a machine that trains the run, then is lost
-    assert experiments.launch([run], str(first), workers=1, dry_run=False, archive=archive, carry=carry) == 0
+    assert sweep.launch([run], str(first), workers=1, dry_run=False, archive=archive, carry=carry) == 0
     # copied while it ran (each time it saved progress), removed once archived
     assert carried and set(carried) == {str(first / run.name)} and os.listdir(carry) == []
     # the archive keeps the weights, not what only training resumes from
@@ -346,62 +348,62 @@ def test_carried_runs_outlive_their_machine_and_archived_weights_feed_the_contro
     assert all(torch.equal(weights["model"][k], v) for k, v in full["model"].items())
     # a second machine: the controls evaluate the archived weights, without retraining the run
     second = tmp_path / "second"
-    assert experiments.launch([run, control], str(second), workers=1, dry_run=False, archive=archive, carry=carry) == 0
+    assert sweep.launch([run, control], str(second), workers=1, dry_run=False, archive=archive, carry=carry) == 0
     out = capsys.readouterr().out
     assert f"restored     {os.path.join(archive, run.name)} -> {second}" in out and f"skip (archived) {run.name}" in out
-    assert experiments.read_status(str(second / control.name))["status"] == "done" and experiments.is_archived(archive, control.name)
+    assert sweep.read_status(str(second / control.name))["status"] == "done" and sweep.is_archived(archive, control.name)
     # an unfinished run's carried copy resumes from its checkpoint on a third machine, then leaves the carry directory
-    record = experiments.read_status(str(first / run.name))
-    experiments.write_status(str(first / run.name), run, shlex.split(record["command"]), "interrupted")
+    record = sweep.read_status(str(first / run.name))
+    sweep.write_status(str(first / run.name), run, shlex.split(record["command"]), "interrupted")
     for name in os.listdir(archive):
         shutil.rmtree(os.path.join(archive, name))
     assert archive_module.archive_sweep(str(first), archive, carry) == 0 and os.listdir(carry) == [run.name]
     assert "run.lock" not in os.listdir(os.path.join(carry, run.name))
     third = tmp_path / "third"
-    assert experiments.launch([run], str(third), workers=1, dry_run=True, archive=archive, carry=carry) == 0
+    assert sweep.launch([run], str(third), workers=1, dry_run=True, archive=archive, carry=carry) == 0
     assert f"would restore {os.path.join(carry, run.name)}" in capsys.readouterr().out and not third.exists()
-    assert experiments.launch([run], str(third), workers=1, dry_run=False, archive=archive, carry=carry) == 0
+    assert sweep.launch([run], str(third), workers=1, dry_run=False, archive=archive, carry=carry) == 0
     out = capsys.readouterr().out
     assert f"restored     {os.path.join(carry, run.name)} -> {third}" in out and f"resume " in out
-    assert experiments.read_status(str(third / run.name))["resumed"] is True and experiments.is_archived(archive, run.name)
+    assert sweep.read_status(str(third / run.name))["resumed"] is True and sweep.is_archived(archive, run.name)
     assert os.listdir(carry) == []
     with pytest.raises(SystemExit, match="--carry needs --archive"):
-        experiments.main(["exp1", "--scale", "smoke", "--carry", carry, "--dry-run"])
+        sweep.main(["exp1", "--scale", "smoke", "--carry", carry, "--dry-run"])
 
 
 def test_controls_recipe_evaluates_the_exp12_claw_checkpoints_once_they_are_done(tmp_path, capsys):
-    controls = experiments.recipe("controls", "learn")
+    controls = sweep.recipe("controls", "learn")
     assert sorted((r.family, r.seed) for r in controls) == [(f, s) for f in ("reach", "walker") for s in (1, 2, 3)]
     for run in controls:
-        trained = experiments.Run("claw", run.family, "F", 16, run.seed)
+        trained = sweep.Run("claw", run.family, "F", 16, run.seed)
         run_dir = tmp_path / run.name
         command = run.command(str(run_dir))
-        assert run.needs == trained.name and command[1].endswith("benchmarks/context_controls.py")
+        assert run.needs == trained.name and command[1].endswith("diagnostics/context_controls.py")
         assert command[2] == str(tmp_path / trained.name / "checkpoint.pt")
         assert command[-4:] == ["--json", str(run_dir / "controls.json"), "--out", str(run_dir / "controls.md")]
         assert command[command.index("--eval-episodes") + 1] == {"reach": "10", "walker": "2"}[run.family]
         if run.family == "walker":  # a distant strength, not the neighbouring one
             assert command[command.index("--swap-offset") + 1] == "10"
         assert "--compile" in command and "--seed" not in command and "--no-cuda" not in command  # the checkpoint's own
-    planned = experiments.plan_runs(["controls", "exp1"], "smoke")  # training first, whatever the order asked
+    planned = sweep.plan_runs(["controls", "exp1"], "smoke")  # training first, whatever the order asked
     assert [r.method for r in planned][-2:] == ["controls", "controls"] and "controls" not in [r.method for r in planned[:-2]]
     control = planned[-1]
     trained = next(r for r in planned if r.name == control.needs)
     for status in (None, "running", "failed", "done"):
         if status:
-            experiments.write_status(str(tmp_path / trained.name), trained, trained.command(str(tmp_path / trained.name)), status)
-        pending = experiments.pending_runs([control], str(tmp_path))
+            sweep.write_status(str(tmp_path / trained.name), trained, trained.command(str(tmp_path / trained.name)), status)
+        pending = sweep.pending_runs([control], str(tmp_path))
         out = capsys.readouterr().out
         if status != "done":
             assert pending == [] and out == f"wait (needs {trained.name} done) {control.name}\n"
         else:
             assert pending == [(control, str(tmp_path / control.name))]
-            assert out == "run    " + experiments.shlex.join(control.command(str(tmp_path / control.name))) + "\n"
-    pending = experiments.pending_runs(planned, str(tmp_path))  # a ready controls run is queued first
+            assert out == "run    " + sweep.shlex.join(control.command(str(tmp_path / control.name))) + "\n"
+    pending = sweep.pending_runs(planned, str(tmp_path))  # a ready controls run is queued first
     waiting = next(r for r in planned if r.method == "controls" and r is not control)
     assert [r.name for r, _ in pending][0] == control.name and len(pending) == len(planned) - 2  # its CLAW run: done
     assert f"wait (needs {waiting.needs} done) {waiting.name}" in capsys.readouterr().out
-    experiments.main(["exp1", "controls", "--scale", "smoke", "--dry-run", "--root", str(tmp_path / "cli")])
+    sweep.main(["exp1", "controls", "--scale", "smoke", "--dry-run", "--root", str(tmp_path / "cli")])
     assert capsys.readouterr().out.count("wait (needs claw__reach__I__r2__s") == 2
 
 
@@ -454,14 +456,14 @@ def test_encoder_probe_learns_a_goal_that_shifts_the_reward():
 def test_learn_recipes_and_budget_training_curves(monkeypatch):
     """The budget recipe trains ST on each Cheetah/Walker embodiment (distinct run names); its runs are aggregated as
     training curves per step window and embodiment, seeds averaged, and Exp 3-5 wait for the chosen budget."""
-    budget = experiments.recipe("budget", "learn")
+    budget = sweep.recipe("budget", "learn")
     assert sorted((r.train_env, r.seed) for r in budget) == [(0, 1), (0, 2), (1, 1), (1, 2)]
     assert len({r.name for r in budget}) == 4 and all("--train-env-id" in r.command("d") for r in budget)
-    exp12 = experiments.plan_runs(["exp1", "exp2"], "learn")
+    exp12 = sweep.plan_runs(["exp1", "exp2"], "learn")
     assert {(r.family, r.size) for r in exp12} == {("reach", "F"), ("walker", "F")} and len(exp12) == 2 * 4 * 3
-    decoder_and_controls = experiments.plan_runs(["decoder"], "learn")  # Exp 1/2's CLAW runs with --decoder-coef, named apart
+    decoder_and_controls = sweep.plan_runs(["decoder"], "learn")  # Exp 1/2's CLAW runs with --decoder-coef, named apart
     decoder = [r for r in decoder_and_controls if r.method == "claw_decoder"]
-    controls = experiments.plan_runs(["controls"], "learn")
+    controls = sweep.plan_runs(["controls"], "learn")
     # each followed by the controls experiment's evaluation of its checkpoint
     assert [(r.method, r.needs, r.extra) for r in decoder_and_controls[len(decoder):]] == [
         ("controls_decoder", trained.name, r.extra) for trained, r in zip(decoder, controls)]
@@ -472,19 +474,19 @@ def test_learn_recipes_and_budget_training_curves(monkeypatch):
     assert all(r.command("d")[1].endswith("claw_tdmpc2.py") and r.command("d")[-2:] == ["--decoder-coef", "1.0"] for r in decoder)
     assert [r.command("d")[:-2] for r in decoder] == [r.command("d") for r in claw12]
     assert not {r.name for r in decoder} & {r.name for r in exp12}
-    exp45 = experiments.plan_runs(["exp4", "exp5"], "learn")  # at the budget chosen from the curves: 2 x 20,000 steps
+    exp45 = sweep.plan_runs(["exp4", "exp5"], "learn")  # at the budget chosen from the curves: 2 x 20,000 steps
     assert sorted({(r.method, r.rank) for r in exp45}) == [("claw", 1), ("claw", 4), ("claw", 8), ("claw", 16), ("concat", 8),
                                                             ("film", 8), ("posthoc", 8)]
     assert len(exp45) == 7 * 3 and all(r.size == "F" and "40000" in r.extra for r in exp45)
     # seed-major across experiments: every experiment's first seed before any second seed
-    issue14 = experiments.plan_runs(["exp4", "exp5", "exp1", "exp2", "controls"], "learn")
+    issue14 = sweep.plan_runs(["exp4", "exp5", "exp1", "exp2", "controls"], "learn")
     seed1 = [r for r in issue14 if r.seed == 1 and r.needs is None]
     assert [r.seed for r in issue14 if r.needs is None] == sorted(r.seed for r in issue14 if r.needs is None)
     assert {m for r in seed1 for m in r.experiments} == {"exp1", "exp2", "exp4", "exp5"}
-    without_budget = {k: v for k, v in experiments.SCALES["learn"].items() if k != "exp345"}
-    monkeypatch.setitem(experiments.SCALES, "learn", without_budget)
+    without_budget = {k: v for k, v in sweep.SCALES["learn"].items() if k != "exp345"}
+    monkeypatch.setitem(sweep.SCALES, "learn", without_budget)
     with pytest.raises(SystemExit, match="waits for its per-embodiment budget"):
-        experiments.recipe("exp4", "learn")
+        sweep.recipe("exp4", "learn")
     monkeypatch.setattr(aggregate, "random_policy_return", lambda family, env_id: 10.0 * (env_id + 1))
 
     def run(env_id, seed, returns):  # (step, training-episode return) pairs, as TensorBoard holds them
@@ -509,7 +511,7 @@ def test_random_policy_return_is_a_real_rollout():
 
 def test_context_probes_patch_claw_only_while_they_run(monkeypatch):
     import claw_tdmpc2 as claw
-    from benchmarks import context_probes
+    from diagnostics import context_probes
     from common.envs import make_env
 
     plain_forward, plain_collect = claw.ContextEncoder.forward, claw.collect_episodes

@@ -1,4 +1,4 @@
-"""benchmarks/oracle_controls.py: the own arm sees what the Oracle is evaluated on, the swapped arm another environment's
+"""diagnostics/oracle_controls.py: the own arm sees what the Oracle is evaluated on, the swapped arm another environment's
 parameter on the same physics, arms are paired and deterministic, interrupted runs are taken up, bad input is one line."""
 import json
 import os
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import oracle_tdmpc2 as oracle
-from benchmarks import oracle_controls
+from diagnostics import oracle_controls
 from common.envs import env_param, make_env
 from test_baselines_gradient import tiny_args
 

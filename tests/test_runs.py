@@ -16,7 +16,7 @@ import film_tdmpc2 as film
 import oracle_tdmpc2 as oracle
 import posthoc_tdmpc2 as posthoc
 import st_tdmpc2 as st
-from benchmarks import aggregate, experiments
+from experiments import aggregate, sweep
 
 SCRIPTS = [claw, dr, st, oracle, film, concat, posthoc]
 
@@ -155,10 +155,10 @@ def test_aggregate_reports_duplicated_steps(tmp_path, capsys):
 def test_launcher_arguments(tmp_path):
     for workers in ("0", "-2"):
         with pytest.raises(SystemExit, match=f"--workers must be >= 1, got {workers}"):
-            experiments.main(["exp1", "--scale", "smoke", "--dry-run", "--workers", workers])
+            sweep.main(["exp1", "--scale", "smoke", "--dry-run", "--workers", workers])
     (tmp_path / "file").write_text("")
     with pytest.raises(SystemExit, match="exists and is not a directory"):
-        experiments.main(["exp1", "--scale", "smoke", "--dry-run", "--root", str(tmp_path / "file")])
+        sweep.main(["exp1", "--scale", "smoke", "--dry-run", "--root", str(tmp_path / "file")])
 
 
 def kill_at_update(monkeypatch, script, call: int):

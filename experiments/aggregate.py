@@ -1,7 +1,7 @@
 """Aggregate a sweep: read each run's TensorBoard events, group runs that differ only by seed,
 and report mean and 95% Student-t CI across seeds, beside each seed's value, as CSV and a markdown table.
 
-    python benchmarks/aggregate.py runs/sweeps/cpu      # writes summary.csv, curves.csv, summary.md there
+    python experiments/aggregate.py runs/sweeps/cpu      # writes summary.csv, curves.csv, summary.md there
 
 Metrics per run (keys written by every method script):
   online_return / online_success   mean over all Exp 1 test-time episodes (family average;
@@ -33,8 +33,8 @@ import scipy.stats
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from benchmarks.archive import archive_sweep, read_scalars  # noqa: E402
-from benchmarks.experiments import CONTROLS, SIZE_RANKS, run_is_live  # noqa: E402
+from experiments.archive import archive_sweep, read_scalars  # noqa: E402
+from experiments.sweep import CONTROLS, SIZE_RANKS, run_is_live  # noqa: E402
 from common.evaluation import mean_ci  # noqa: E402
 
 GROUP_KEYS = ("method", "family", "size", "rank")
@@ -51,7 +51,7 @@ def eval_tag(phase: str, key: str) -> str:
 
 
 def load_runs(roots: str | list[str]) -> list[dict]:
-    """run.json of every run under the roots (sweep directories or archives, benchmarks/archive.py), with its scalars
+    """run.json of every run under the roots (sweep directories or archives, experiments/archive.py), with its scalars
     as {tag: [(step, value), ...]}. A run found under several roots counts once: its finished copy, else the first."""
     found = {}
     for root in [roots] if isinstance(roots, str) else roots:
@@ -216,7 +216,7 @@ def training_markdown(rows: list[dict]) -> str:
 
 
 def controls_rows(runs: list[dict]) -> list[dict]:
-    """Context controls (benchmarks/context_controls.py on the Exp 1/2 checkpoints of CLAW, or of CLAW + decoder), per
+    """Context controls (diagnostics/context_controls.py on the Exp 1/2 checkpoints of CLAW, or of CLAW + decoder), per
     trained method and family: each seed's family-mean return with its own context, with another environment's, their
     difference, and per context size; then mean and 95% CI across seeds, and across (seed, environment) pairs (more
     pairs, but environments of one seed share a network, so this CI is the optimistic one)."""
@@ -427,7 +427,7 @@ def markdown(rows: list[dict], problems: list[tuple[str, str]], duplicated: list
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("roots", nargs="+", metavar="root",
-                        help="sweep directories or archives (benchmarks/archive.py), e.g. runs/sweeps/cpu; the tables go to the first")
+                        help="sweep directories or archives (experiments/archive.py), e.g. runs/sweeps/cpu; the tables go to the first")
     parser.add_argument("--archive", default=None, metavar="DIR",
                         help="also read this archive, and first archive there every finished run of the roots (e.g. results/learn/runs)")
     parser.add_argument("--exp4-size", default="F", choices=list(SIZE_RANKS),
@@ -440,7 +440,7 @@ def main(argv=None):
         cli.roots.append(cli.archive)
     runs = load_runs(cli.roots)
     if not runs:
-        raise SystemExit(f"error: no run.json under {' '.join(map(repr, cli.roots))}; run benchmarks/experiments.py first")
+        raise SystemExit(f"error: no run.json under {' '.join(map(repr, cli.roots))}; run experiments/sweep.py first")
     print(f"read {len(runs)} runs; the training curves roll out a random policy per family (minutes on Walker)",
           file=sys.stderr, flush=True)
     rows, curves, problems = summarize(runs)

@@ -15,9 +15,9 @@ method plans as one context-free model would, whatever its adapters' size (base)
 `inspect_adapters.py` (CLAW's u_con and LoRA factors) it measures every in-context method on the same scale.
 Computed in float64, so changes down to ~1e-12 are resolved.
 
-    python benchmarks/context_effect.py runs/<run>/checkpoint.pt [--episodes 3] [--draws 3] [--batch 256] [--out effect.md]
+    python diagnostics/context_effect.py runs/<run>/checkpoint.pt [--episodes 3] [--draws 3] [--batch 256] [--out effect.md]
 
-The sweep launcher (`experiments.py`) runs it on every CLAW, FiLM, Concat and post-hoc run it finishes and keeps
+The sweep launcher (`sweep.py`) runs it on every CLAW, FiLM, Concat and post-hoc run it finishes and keeps
 context_effect.md in the run's archive, which outlives the checkpoint.
 """
 from __future__ import annotations

@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# CI check of `experiments.py --launcher slurm` against a real SLURM: installs Debian's slurm-wlm and
+# CI check of `sweep.py --launcher slurm` against a real SLURM: installs Debian's slurm-wlm and
 # munge, starts a one-node cluster on this machine with all its state in a fresh temporary directory,
 # submits the two-run smoke sweep, waits for it, aggregates it, checks both runs are done, preempts
 # one more run and checks it resumes from its checkpoint, and shuts the daemons down on any exit. Needs root and apt-get (a fresh Debian 12 CI machine).
 #
-#   benchmarks/slurm_ci.sh [python]      # default: .venv/bin/python of this checkout
+#   experiments/slurm_ci.sh [python]      # default: .venv/bin/python of this checkout
 set -euo pipefail
 cd "$(dirname "$0")/.."
 repo=$PWD
@@ -105,7 +105,7 @@ done
 echo "slurm_ci: one-node cluster up after $(( $(date +%s) - start )) s"
 
 sweep=$tmp/sweep
-MUJOCO_GL=disable timeout 120 "$python" benchmarks/experiments.py exp1 --scale smoke --methods claw \
+MUJOCO_GL=disable timeout 120 "$python" experiments/sweep.py exp1 --scale smoke --methods claw \
     --launcher slurm --root "$sweep" --cpus-per-task 1 --time 10
 # poll squeue (sbatch --wait polls every 10 s); bounded
 for i in $(seq 600); do
@@ -113,7 +113,7 @@ for i in $(seq 600); do
     [ "$i" = 600 ] && { echo "slurm_ci: jobs still queued after 10 min" >&2; squeue; exit 1; }
     sleep 1
 done
-MUJOCO_GL=disable timeout 300 "$python" benchmarks/aggregate.py "$sweep"
+MUJOCO_GL=disable timeout 300 "$python" experiments/aggregate.py "$sweep"
 "$python" - "$sweep" "$python" <<'EOF'
 import glob, json, os, sys
 records = {os.path.basename(os.path.dirname(p)): json.load(open(p)) for p in glob.glob(os.path.join(sys.argv[1], "*", "run.json"))}
@@ -128,11 +128,11 @@ echo "slurm_ci: sweep checked after $(( $(date +%s) - start )) s"
 preempt=$tmp/preempt
 MUJOCO_GL=disable timeout 120 "$python" - "$preempt" <<'EOF'
 import sys
-from benchmarks import experiments
-run = [r for r in experiments.plan_runs(["exp1"], "smoke") if r.method == "claw"][0]
+from experiments import sweep
+run = [r for r in sweep.plan_runs(["exp1"], "smoke") if r.method == "claw"][0]
 run.extra[run.extra.index("--total-timesteps") + 1] = "1200"  # long enough to be preempted mid-run
 run.extra += ["--checkpoint-every", "200"]
-experiments.launch([run], sys.argv[1], None, False, "slurm", {"time": 10, "cpus_per_task": 1})
+sweep.launch([run], sys.argv[1], None, False, "slurm", {"time": 10, "cpus_per_task": 1})
 EOF
 run_dir=$(dirname "$(ls "$preempt"/*/run.json)")
 for i in $(seq 300); do

@@ -1,19 +1,19 @@
 """One-command recipes for the paper's Experiments 1-5 and the context controls, and the sweep launcher that runs them.
 
-    python benchmarks/experiments.py exp1 --dry-run            # list the commands (paper scale)
-    python benchmarks/experiments.py exp1 exp2 --scale cpu --launcher local --workers 2
-    python benchmarks/experiments.py decoder --scale learn --families reach --seeds 2 3   # a part of a recipe first
-    python benchmarks/experiments.py exp1 exp2 --launcher slurm --partition gpu --time 12:00:00 \
+    python experiments/sweep.py exp1 --dry-run            # list the commands (paper scale)
+    python experiments/sweep.py exp1 exp2 --scale cpu --launcher local --workers 2
+    python experiments/sweep.py decoder --scale learn --families reach --seeds 2 3   # a part of a recipe first
+    python experiments/sweep.py exp1 exp2 --launcher slurm --partition gpu --time 12:00:00 \
         --cpus-per-task 8 --gpus-per-task 1                   # one SLURM job array, then returns
-    python benchmarks/aggregate.py runs/sweeps/cpu             # tables with 95% CIs
-    python benchmarks/figures.py runs/sweeps/cpu               # the paper's figures
+    python experiments/aggregate.py runs/sweeps/cpu             # tables with 95% CIs
+    python experiments/figures.py runs/sweeps/cpu               # the paper's figures
 
 Every run is an ordinary script invocation with its own --run-dir under runs/sweeps/{scale}/, its
 output in stdout.log there; local runs it on this machine, slurm as one task of a job array
 (submitit), requeued on preemption or time-out to resume from its checkpoint. The launcher writes
 run.json beside each run (method, family, size, rank, seed, experiments, command, status). With --archive DIR
 (e.g. results/learn/runs, committed) each finished run's measurements and weights (not its replay buffer) are also copied to DIR
-(benchmarks/archive.py), and the runs DIR holds are skipped: losing the sweep directory loses no finished run.
+(experiments/archive.py), and the runs DIR holds are skipped: losing the sweep directory loses no finished run.
 With --carry DIR (e.g. results/learn/carry, committed) an unfinished run is not lost with its machine either: each
 time it saves progress its directory is copied to DIR, and a launcher whose sweep directory lacks it copies it back
 and resumes it; a controls run whose CLAW run is archived evaluates the archived weights.
@@ -23,7 +23,7 @@ that died (lock free, checkpoint present); it prints a finished run whose record
 from the recipe's. Exp 1 and Exp 2 share pretraining runs (each run evaluates both protocols), and
 Exp 3, 4 and 5 share the size-F CLAW runs, so a run needed by several experiments runs once.
 Experiment controls (issue 14) trains nothing: one run per Exp 1/2 family and seed evaluates that CLAW run's
-checkpoint with benchmarks/context_controls.py (own vs another environment's context, context sizes 1, 3, 10),
+checkpoint with diagnostics/context_controls.py (own vs another environment's context, context sizes 1, 3, 10),
 writing controls.json and controls.md in its run directory, with each scale's Exp 1/2 evaluation settings
 (SCALES[scale]["controls"]). It waits for its CLAW run: the launcher starts it once that run is "done" (rerun
 the launcher later); a controls run whose checkpoint is ready starts ahead of the training runs still queued.
@@ -67,18 +67,18 @@ from dataclasses import dataclass, field
 import submitit
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, REPO)  # run as a script, benchmarks/ is not yet a package on the path
-from benchmarks.archive import WEIGHTS, archive_run, carry_run, is_archived, restore_run  # noqa: E402
+sys.path.insert(0, REPO)  # run as a script, experiments/ is not yet a package on the path
+from experiments.archive import WEIGHTS, archive_run, carry_run, is_archived, restore_run  # noqa: E402
 
 SCRIPTS = {m: f"{m}_tdmpc2.py" for m in ("claw", "dr", "st", "oracle", "film", "concat", "posthoc")}
-SCRIPTS["controls"] = os.path.join("benchmarks", "context_controls.py")  # evaluation only: Run.command
+SCRIPTS["controls"] = os.path.join("diagnostics", "context_controls.py")  # evaluation only: Run.command
 # experiment decoder: CLAW with its reward decoder on u_con (a departure from the paper), a method of its own in the tables
 SCRIPTS["claw_decoder"] = SCRIPTS["claw"]
-# evaluation-only methods (benchmarks/context_controls.py) -> the trained method whose checkpoints they evaluate
+# evaluation-only methods (diagnostics/context_controls.py) -> the trained method whose checkpoints they evaluate
 CONTROLS = {"controls": "claw", "controls_decoder": "claw_decoder"}
 SCRIPTS["controls_decoder"] = SCRIPTS["controls"]
 # what the launcher measures on a finished run's checkpoint, kept in the archive (which does not keep checkpoints):
-# report file -> (benchmarks/ script whose stdout it is, the methods it applies to). context_effect: how much the
+# report file -> (diagnostics/ script whose stdout it is, the methods it applies to). context_effect: how much the
 # context moves the world model's predictions (in-context methods); inspect_adapters: whether u_con and the generated
 # adapters tell the environments apart, and which losses reach the context encoder (CLAW's hypernetwork)
 CHECKPOINT_REPORTS = {
@@ -350,12 +350,12 @@ _STOP = threading.Event()  # set when a local sweep is interrupted: no new runs,
 
 def measure_checkpoint(run_dir: str, method: str, env: dict) -> None:
     """The CHECKPOINT_REPORTS of a finished run (seconds to a few minutes each); a failure is a warning: the run is
-    done all the same, and `python benchmarks/<script> CHECKPOINT > REPORT` can redo it while the checkpoint exists."""
+    done all the same, and `python diagnostics/<script> CHECKPOINT > REPORT` can redo it while the checkpoint exists."""
     for report, (script, methods) in CHECKPOINT_REPORTS.items():
         if method not in methods:
             continue
         path = os.path.join(run_dir, report)
-        command = [sys.executable, os.path.join(REPO, "benchmarks", script), os.path.join(run_dir, "checkpoint.pt")]
+        command = [sys.executable, os.path.join(REPO, "diagnostics", script), os.path.join(run_dir, "checkpoint.pt")]
         with open(os.path.join(run_dir, "stdout.log"), "a") as log, open(path + ".partial", "w") as out:
             returncode = subprocess.run(command, cwd=REPO, env={**os.environ, **env, "OMP_NUM_THREADS": "1"},
                                         stdout=out, stderr=log).returncode
@@ -376,7 +376,7 @@ class RunJob(submitit.helpers.Checkpointable):
 
     def __init__(self, die_with_launcher: bool = False, archive: str | None = None, carry: str | None = None):
         self.process = None
-        self.archive = archive  # where a finished run's measurements are copied (benchmarks/archive.py), or None
+        self.archive = archive  # where a finished run's measurements are copied (experiments/archive.py), or None
         self.carry = carry  # where an unfinished run's directory is copied as it saves progress, or None
         # local runs end with their launcher (SIGTERM on its death, via setpriv where it exists), as a
         # run that outlived it would finish unrecorded; SLURM ends a job's processes itself
@@ -430,7 +430,7 @@ class RunJob(submitit.helpers.Checkpointable):
                     archive_run(run_dir, self.archive)
                     if self.carry:  # archived: its carried copy has served
                         shutil.rmtree(os.path.join(self.carry, run.name), ignore_errors=True)
-                except (OSError, ValueError) as error:  # the run is done all the same; benchmarks/archive.py can redo this
+                except (OSError, ValueError) as error:  # the run is done all the same; experiments/archive.py can redo this
                     print(f"warning: {run.name} not archived: {error}", flush=True)
             elif self.carry and progress_stamp(run_dir):
                 self.carry_progress(run_dir)
@@ -627,7 +627,7 @@ def submit_slurm(pending: list[tuple[Run, str]], root: str, env: dict, cuda: boo
     executor = submitit.SlurmExecutor(folder=os.path.join(root, ".submitit", "%j"), max_num_timeout=slurm.get("max_requeues", 3))
     parameters = {"job_name": "claw-sweep", "time": slurm.get("time", 60), "cpus_per_task": slurm.get("cpus_per_task", 1),
                   "stderr_to_stdout": True,
-                  # the nodes unpickle RunJob from benchmarks.experiments
+                  # the nodes unpickle RunJob from experiments.sweep
                   "setup": [f"export PYTHONPATH={shlex.quote(REPO)}${{PYTHONPATH:+:$PYTHONPATH}}"],
                   "additional_parameters": slurm.get("sbatch", {})}
     for key in ("partition", "gpus_per_task"):
@@ -677,7 +677,7 @@ def main(argv=None):
     parser.add_argument("--archive", default=None, metavar="DIR",
                         help="copy each finished run's measurements and weights (not its replay buffer) to DIR, e.g. results/learn/runs, and skip"
                              " the runs DIR holds: commit DIR, and a sweep directory lost with its machine loses no finished run"
-                             " (benchmarks/archive.py)")
+                             " (experiments/archive.py)")
     parser.add_argument("--carry", default=None, metavar="DIR",
                         help="copy each unfinished run's directory to DIR, e.g. results/learn/carry, whenever it saves progress,"
                              " and restore from DIR the runs the sweep directory lacks: commit DIR, and a run outlives its"
@@ -695,7 +695,7 @@ def main(argv=None):
     cli = parser.parse_args(argv)
 
     def fail(message: str):  # one line, not argparse's usage block
-        raise SystemExit(f"experiments.py: error: {message}")
+        raise SystemExit(f"sweep.py: error: {message}")
 
     if cli.workers is not None and cli.workers < 1:
         fail(f"--workers must be >= 1, got {cli.workers}")
@@ -746,7 +746,7 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    # run through the package module, so that the jobs pickle RunJob as benchmarks.experiments.RunJob
-    from benchmarks import experiments
+    # run through the package module, so that the jobs pickle RunJob as experiments.sweep.RunJob
+    from experiments import sweep
 
-    experiments.main()
+    sweep.main()

@@ -11,9 +11,9 @@ wrapped tool runs and restores it afterwards.
          for the hypernetwork: one standardised feature, constant within a context, differs between goals. If
          CLAW still plans with goal-independent adapters, what fails is its training signal, not its context.
 
-    python benchmarks/context_probes.py PROBE train <claw_tdmpc2.py flags>
-    python benchmarks/context_probes.py PROBE inspect <checkpoint> [inspect_adapters.py flags]
-    python benchmarks/context_probes.py PROBE controls <checkpoint> [context_controls.py flags]
+    python diagnostics/context_probes.py PROBE train <claw_tdmpc2.py flags>
+    python diagnostics/context_probes.py PROBE inspect <checkpoint> [inspect_adapters.py flags]
+    python diagnostics/context_probes.py PROBE controls <checkpoint> [context_controls.py flags]
 
 Inspect and evaluate a probe's checkpoint through the same probe: a goal-probe hypernetwork fed plain
 contexts sees all-zero goal slots it never saw in training.
@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
 import claw_tdmpc2 as claw  # noqa: E402
-from benchmarks import context_controls, inspect_adapters  # noqa: E402
+from diagnostics import context_controls, inspect_adapters  # noqa: E402
 from common.context import collect_episodes  # noqa: E402
 
 HIDDEN_GOAL = slice(36, 39)  # Meta-World's goal slots, zeroed by common.envs for the hidden-goal families

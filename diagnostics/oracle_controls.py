@@ -11,7 +11,7 @@ Both arms of an environment start from the same torch seed, so they differ only 
 move, the Oracle's planner ignores what it is told; a swapped arm above the own arm means it plans better believing
 it is somewhere else. It is the Oracle's counterpart of context_controls.py (CLAW given another environment's context).
 
-    python benchmarks/oracle_controls.py runs/<oracle run>/checkpoint.pt [--swap-offset 10] [--env-ids 0 1 2]
+    python diagnostics/oracle_controls.py runs/<oracle run>/checkpoint.pt [--swap-offset 10] [--env-ids 0 1 2]
         [--eval-episodes 2] [--compile on] [--out oracle_controls.md] [--json oracle_controls.json]
 
 Nothing finished is lost on interruption: with --json each finished environment is written there (atomically), and

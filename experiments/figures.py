@@ -1,6 +1,6 @@
 """The paper's figures from a sweep (PNG, matplotlib), drawn from the same aggregation as the tables.
 
-    python benchmarks/figures.py runs/sweeps/cpu [--out DIR]
+    python experiments/figures.py runs/sweeps/cpu [--out DIR]
 
 exp1.png  return (and success for Reach/Push) vs test-time steps per family: CLAW, DR, ST, Oracle
 exp2.png  return (and success) vs offline gradient steps (symlog x); CLAW's pass as a horizontal band
@@ -27,8 +27,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import matplotlib.ticker  # noqa: E402
 
-from benchmarks.aggregate import controls_rows, load_runs, summarize, training_curves  # noqa: E402
-from benchmarks.experiments import SIZE_RANKS  # noqa: E402
+from experiments.aggregate import controls_rows, load_runs, summarize, training_curves  # noqa: E402
+from experiments.sweep import SIZE_RANKS  # noqa: E402
 
 COLORS = {"claw": "tab:red", "dr": "tab:blue", "st": "tab:green", "oracle": "black", "film": "tab:purple",
           "concat": "tab:orange", "posthoc": "tab:gray", "claw_decoder": "tab:pink"}
@@ -298,7 +298,7 @@ def figure_controls(controls, out) -> str | None:
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("roots", nargs="+", metavar="root",
-                        help="sweep directories or archives (benchmarks/archive.py), e.g. runs/sweeps/cpu results/learn/runs")
+                        help="sweep directories or archives (experiments/archive.py), e.g. runs/sweeps/cpu results/learn/runs")
     parser.add_argument("--out", default=None, help="output directory (default: the first root)")
     cli = parser.parse_args(argv)
     out = cli.out or cli.roots[0]

@@ -12,7 +12,7 @@ planner sees: the merged LoRA update A B of each adapted layer relative to the l
 how far the environments' merged updates are apart (a near-zero or environment-independent update is
 a CLAW that plans with its base weights, whatever phi's norm).
 
-    python benchmarks/inspect_adapters.py runs/<run>/checkpoint.pt [--episodes 3] [--draws 4]
+    python diagnostics/inspect_adapters.py runs/<run>/checkpoint.pt [--episodes 3] [--draws 4]
 """
 from __future__ import annotations
 

@@ -9,17 +9,17 @@ CLAW run inspect_adapters.txt (`inspect_adapters.py`: do u_con and the adapters 
 for the context controls, controls.json and controls.md: ~100-200 kB for a 50,000-step run, and its checkpoint
 without the replay buffer and optimizer state (WEIGHTS: ~0.4 MB at size F, for evaluation only: the context controls
 of a CLAW run whose sweep directory is gone, re-measured reports, new evaluation-only analyses). `aggregate.py` and
-`figures.py` read an archive like a sweep directory, and `experiments.py --archive DIR` archives each run as it
+`figures.py` read an archive like a sweep directory, and `sweep.py --archive DIR` archives each run as it
 finishes and skips the runs the archive holds.
 
 A run longer than a machine lives (a session's machine is not always the next session's) is carried: with
-`experiments.py --carry DIR` the launcher copies a live run's directory (checkpoint, evaluation progress, events,
+`sweep.py --carry DIR` the launcher copies a live run's directory (checkpoint, evaluation progress, events,
 stdout.log; ~15 MB at size F, mostly the replay buffer) to DIR/<run> each time the run saves progress, removes the
 copy once the run is archived, and, on a machine whose sweep directory lacks the run, copies DIR/<run> back before
 launching: the run resumes from its last checkpoint. Commit DIR before the machine goes.
 
-    python benchmarks/archive.py /work/sweeps/learn results/learn/runs   # archive every finished run of a sweep
-    python benchmarks/archive.py /work/sweeps/learn results/learn/runs --carry results/learn/carry   # and carry the others
+    python experiments/archive.py /work/sweeps/learn results/learn/runs   # archive every finished run of a sweep
+    python experiments/archive.py /work/sweeps/learn results/learn/runs --carry results/learn/carry   # and carry the others
 """
 from __future__ import annotations
 
@@ -159,7 +159,7 @@ def main(argv=None):
     parser.add_argument("root", help="sweep directory, e.g. /work/sweeps/learn")
     parser.add_argument("archive", help="archive directory, e.g. results/learn/runs")
     parser.add_argument("--carry", default=None, metavar="DIR",
-                        help="also copy each unfinished run's directory to DIR (e.g. results/learn/carry), as experiments.py --carry does")
+                        help="also copy each unfinished run's directory to DIR (e.g. results/learn/carry), as sweep.py --carry does")
     cli = parser.parse_args(argv)
     if not os.path.isdir(cli.root):
         raise SystemExit(f"archive.py: error: {cli.root!r} is not a directory")

@@ -10,7 +10,7 @@ environment's one-hot id (a perfect u_con) and one without, and reports their he
 The gap, 1 - MSE(with id) / MSE(without), is the part of the loss that only identification removes; ~0 means a
 decoder on that target cannot identify the environments. Held out: a random fifth of the transitions.
 
-Usage: python benchmarks/decoder_signal.py [--family walker] [--episodes 10] [--steps 3000]
+Usage: python diagnostics/decoder_signal.py [--family walker] [--episodes 10] [--steps 3000]
 """
 from __future__ import annotations
 

@@ -18,7 +18,7 @@ environment's evaluation seeds) wherever evaluate() feeds it environment j's own
 is torch.compile'd: its random streams differ from eager's, so the own arm is then CLAW's evaluation protocol but no
 longer matches `claw_tdmpc2.py --eval-only` bit for bit.
 
-    python benchmarks/context_controls.py runs/<run>/checkpoint.pt [--swap-offset 1] [--context-episodes 1 3 10]
+    python diagnostics/context_controls.py runs/<run>/checkpoint.pt [--swap-offset 1] [--context-episodes 1 3 10]
         [--eval-episodes 10] [--online-eval-steps 0] [--compile off] [--out controls.md] [--json controls.json]
         [--progress PREFIX]
 

@@ -17,7 +17,7 @@ from the context's rewards. This script draws several 3-episode random-policy co
                        Reports test hits and the u_con between/within-goal ratio on the test contexts.
 The tracked position is the hand for Reach and the object for Push.
 
-Usage: python benchmarks/context_identifiability.py [--family reach] [--draws 6] [--probe-refresh 20]
+Usage: python diagnostics/context_identifiability.py [--family reach] [--draws 6] [--probe-refresh 20]
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ import scipy.stats  # noqa: E402
 import torch  # noqa: E402
 
 import claw_tdmpc2 as claw  # noqa: E402
-from benchmarks.inspect_adapters import between_within  # noqa: E402
+from diagnostics.inspect_adapters import between_within  # noqa: E402
 
 from common.context import collect_episodes  # noqa: E402
 from common.envs import env_param, make_env, num_envs  # noqa: E402
