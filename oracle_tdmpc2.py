@@ -12,12 +12,12 @@ steps on the context data, as DR does.
     python oracle_tdmpc2.py --family reach --rank 16
 
 Every step count (--total-timesteps, --seed-steps, --online-eval-steps, global_step) counts agent
-steps, i.e. planner calls; with action repeat 2 that is half the simulator steps.
+steps, i.e. planner calls; with action repeat 2 that is half the simulator steps. Read top to bottom: Args,
+math, networks, the method's own parts, planner, buffers, update, evaluation, main; the plumbing comes last.
 """
 from __future__ import annotations
 
 import copy
-import hashlib
 import math
 import os
 import random
@@ -34,9 +34,8 @@ import torch.nn.functional as F
 import tyro
 from torch.utils.tensorboard import SummaryWriter
 
-from common.context import collect_episodes
 from common.envs import FAMILIES, episode_length, is_metaworld, make_env, num_envs, render_problem, rng_state, set_rng_state
-from common.evaluation import mean_ci, offline_adaptation, online_adaptation, progress_bar
+from common.evaluation import evaluate_family, global_rng_state, progress_bar, set_global_rng_state, weights_digest
 
 # Paper Table "Per-family pretraining setup" (cheetah_walker: Exp 3-5, 250k per task).
 DEFAULT_TOTAL_TIMESTEPS = {"walker": 600_000, "reach": 50_000, "push": 300_000, "go1": 1_000_000, "cheetah_walker": 500_000}
@@ -156,40 +155,6 @@ class Args:
     capture_video: bool = False
     """record the first Exp 2 (offline) episode of every test environment (of every --offline-adapt-steps setting, where there is
     a sweep) to {run_dir}/videos/env{id}_offline*.mp4; needs MUJOCO_GL=egl (GPU, or Mesa's software EGL) or MUJOCO_GL=osmesa (CPU)"""
-
-
-def validate_args(args: Args) -> tuple[int, int, int]:
-    if args.family not in FAMILIES:
-        raise SystemExit(f"error: unknown family {args.family!r}; valid families: {', '.join(FAMILIES)}")
-    if not 0 < args.num_elites <= args.num_samples or not 0 <= args.num_pi_trajs < args.num_samples:
-        raise SystemExit("error: need 0 < --num-elites <= --num-samples and 0 <= --num-pi-trajs < --num-samples, got "
-                         f"{args.num_elites}, {args.num_samples}, {args.num_pi_trajs}")
-    if any(steps < 0 for steps in args.offline_adapt_steps):
-        raise SystemExit(f"error: --offline-adapt-steps must be non-negative, got {args.offline_adapt_steps}")
-    for name in ("checkpoint", "resume"):
-        path = getattr(args, name)
-        if path is not None and not os.path.isfile(path):
-            raise SystemExit(f"error: --{name} {path!r} does not exist")
-    if args.eval_only and args.checkpoint is None:
-        raise SystemExit("error: --eval-only needs --checkpoint PATH")
-    if args.eval_only and args.resume:
-        raise SystemExit("error: --eval-only and --resume exclude each other")
-    check_counts(args, ("total_timesteps", "batch_size", "horizon", "iterations", "num_samples", "log_every", "checkpoint_every",
-                        "checkpoint_minutes", "threads", "rank", "context_episodes", "eval_episodes", "context_dim", "embed_hidden",
-                        "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps", "decoder_coef"))
-    if args.num_bins < 2 or args.vmin >= args.vmax:
-        raise SystemExit(f"error: need --num-bins >= 2 and --vmin < --vmax, got {args.num_bins}, {args.vmin}, {args.vmax}")
-    budget = resolve_budget(args)  # (total agent steps, --seed-steps, prefill agent steps)
-    if not (args.eval_only or args.dry_run):  # the budget matters only to a training run
-        check_budget(budget[0], budget[2])
-    return budget
-
-
-def default_discount(args: Args, episode_length: int) -> float:
-    """--discount (the paper's 0.99), or with --discount-heuristic TD-MPC2's clip((L/5-1)/(L/5), 0.95, 0.995)."""
-    if not args.discount_heuristic:
-        return args.discount
-    return min(max((episode_length / 5 - 1) / (episode_length / 5), 0.95), 0.995)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -411,7 +376,7 @@ def adapted_weights(model: WorldModel, phi, layout) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------
-# MPPI planner (TD-MPC2), batched over all samples
+# MPPI planner: TD-MPC2's, batched over all samples
 # ---------------------------------------------------------------------------------------------
 @torch.no_grad()
 def estimate_value(model: WorldModel, weights, z, actions, discount: float, args: Args):
@@ -614,7 +579,222 @@ def make_optimizers(model: WorldModel, args: Args):
 
 
 # ---------------------------------------------------------------------------------------------
-# Run plumbing: argument checks, checked checkpoints, progress
+# Evaluation: the shared protocols with DR's adapt (gradient steps on fresh LoRA) and act (MPPI)
+# ---------------------------------------------------------------------------------------------
+def evaluate(model, scale, layout, n_adapt, discount, writer, device, args: Args, progress_path: str | None = None) -> dict:
+    model.eval().requires_grad_(False)  # the base is frozen: only the adapters phi are optimised
+    current = {"weights": model.base_weights(), "mean": None}
+    # One phi, Adam and Q scale for every environment, reset in place: the compiled adapt_step guards on these
+    # objects, so fresh ones per environment recompiled it until dynamo's recompile limit sent it back to eager.
+    phi = torch.zeros(n_adapt, device=device, requires_grad=True)
+    current.update(phi=phi, optimizer=torch.optim.Adam([phi], lr=args.learning_rate), scale=copy.deepcopy(scale))
+
+    def reset_adapters(context):
+        """Fresh adapters (a zero update), a fresh Adam, the pretrained Q scale, the context data."""
+        with torch.no_grad():
+            phi.copy_(lora_template(layout, n_adapt))
+            for moments in current["optimizer"].state.values():  # step 0 and zero moments: exactly a new Adam
+                for value in moments.values():
+                    value.zero_()
+            current["scale"].value.copy_(scale.value)
+        current.update(replay=context_replay(context, device, args), weights=model.base_weights())
+
+    def adapt(context, steps: int = 1):
+        for _ in range(steps):
+            adapt_step(model, current["phi"], current["optimizer"], current["scale"], layout,
+                       *current["replay"].sample(0, args.batch_size), discount, args)
+        with torch.no_grad():  # the planner uses plain merged weights
+            current["weights"] = adapted_weights(model, current["phi"], layout)
+
+    def act(obs, first_step):
+        obs = torch.as_tensor(obs, dtype=torch.float32, device=device)
+        action, current["mean"] = plan(model, current["weights"], obs, None if first_step else current["mean"], discount, args, explore=False)
+        return action.cpu().numpy()
+
+    no_adapt = lambda c: None  # noqa: E731  Exp 1: the oracle knows the environment, it does not adapt
+
+    return evaluate_family(range(num_envs(args.family)), adapt, act, writer, args, online_adapt=no_adapt, reset=reset_adapters,
+                           offline_points=args.offline_adapt_steps, env_kwargs={"oracle": True}, progress_path=progress_path,
+                           weights=weights_digest(model))
+
+
+# ---------------------------------------------------------------------------------------------
+# Main: set-up, prefill, burst, online pretraining loop, evaluation
+# ---------------------------------------------------------------------------------------------
+def main(args: Args):
+    started = time.time()
+    validate_args(args)
+    purge_step = None
+    if args.resume or args.eval_only:  # the checkpoint's arguments; a flag given explicitly with another value is an error
+        saved = read_checkpoint(args.resume or args.checkpoint)
+        architecture = ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic")  # the rank is a test-time choice here
+        adopt_args(args, saved["args"], None if args.resume else architecture, args.resume or args.checkpoint)  # --resume: every flag
+        purge_step, saved = saved["global_step"] + 1 if args.resume else None, None  # checkpoints are large: keep only the step
+    total_timesteps, seed_steps, prefill = validate_args(args)
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    if args.compile == "auto":  # measured break-even: README "Speed"
+        args.compile = "on" if total_timesteps >= 10_000 else "off"
+    if args.compile == "on":  # rebinds the module's hot functions: every call below, evaluation included, takes the compiled ones
+        global update, plan, adapt_step
+        update, plan, adapt_step = compiled(update, device, cuda_graphs=False), compiled(plan, device), compiled(adapt_step, device, cuda_graphs=False)
+
+    n_envs, ep_len = num_envs(args.family), episode_length(args.family)
+    envs = [make_env(args.family, env_id, oracle=True, seed=args.seed + env_id) for env_id in range(n_envs)]
+    for env_id, env in enumerate(envs):
+        env.action_space.seed(args.seed + env_id)
+    obs_dim, act_dim = envs[0].observation_space.shape[0], envs[0].action_space.shape[0]
+    discount = default_discount(args, ep_len)
+
+    model = WorldModel(obs_dim, act_dim, args.model_size, args).to(device)
+    layout, n_wm, n_pi = lora_layout(model, args.rank)
+    print(f"base parameters: {sum(p.numel() for p in model.base_parameters())}")
+    print(f"adapter parameters: {n_wm} (world model) + {n_pi} (policy)", flush=True)
+    if args.dry_run:
+        return
+    print(describe_device(args, device))
+    if args.capture_video and (problem := render_problem(args.family)):  # one line at the start, not a traceback at the first video
+        print(f"warning: --capture-video records nothing: {problem}", flush=True)
+        args.capture_video = False
+    if not args.eval_only:
+        print(f"budget: {total_timesteps} agent steps: a {prefill}-step random prefill, {args.burst_updates} burst updates, then training", flush=True)
+
+    if args.resume and args.run_dir is None:  # keep logging into the interrupted run
+        args.run_dir = os.path.dirname(os.path.abspath(args.resume))
+    run_dir = args.run_dir or f"runs/{args.family}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    if args.track:  # before the SummaryWriter, whose scalars W&B mirrors (sync_tensorboard)
+        import wandb
+
+        wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, sync_tensorboard=True, config=vars(args),
+                   name=os.path.basename(os.path.abspath(run_dir)), save_code=True)
+    writer = SummaryWriter(run_dir, purge_step=purge_step)  # a resumed run replaces the events logged after its checkpoint
+    writer.add_text("hyperparameters", hyperparameter_text(args, total_timesteps=total_timesteps, seed_steps=seed_steps, discount=discount, device=device))
+    scale = RunningScale(args.tau, device)
+    if args.eval_only:
+        load_checkpoint(args.checkpoint, model, scale=scale)
+        evaluate(model, scale, layout, n_wm + n_pi, discount, writer, device, args)
+        writer.close()
+        if args.track:
+            wandb.finish()
+        return
+
+    optimizers = make_optimizers(model, args)
+    replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
+    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
+    global_step, burst_left, saved_at, saved_step = 0, args.burst_updates, time.time(), 0
+
+    def save():  # atomic; also right after the prefill and the burst, and every --checkpoint-minutes
+        nonlocal saved_at, saved_step
+        save_checkpoint(checkpoint_path, global_step, burst_left, model, optimizers, scale, replay, args, envs)
+        saved_at, saved_step = time.time(), global_step
+
+    if args.resume:
+        state = load_checkpoint(args.resume, model, optimizers, scale, replay, restore_rng=True)
+        global_step, burst_left, saved_step = state["global_step"], state.get("burst_left", 0), state["global_step"]
+        for env, env_rng in zip(envs, state["rng"].get("envs", [])):  # checkpoints are written at episode ends
+            set_rng_state(env, env_rng)
+        print(f"resumed from {args.resume} at step {global_step}", flush=True)
+    else:
+        global_step += random_prefill(dict(enumerate(envs)), replay, prefill)  # update buffers: every environment
+        save()
+    if burst_left:  # also a run killed during its burst: it resumes from the checkpoint after the prefill
+        print(f"prefilled {global_step} steps; {burst_left} burst updates", flush=True)
+        for _ in progress_bar(range(burst_left), desc="burst"):
+            k = random.randrange(n_envs)
+            update(model, optimizers, scale, *replay.sample(k, args.batch_size), discount, args)
+        burst_left = 0
+        save()
+
+    first = True  # an episode starts at the top of the loop, also where a resumed run continues
+    start_time, start_step, recent = time.time(), global_step, deque(maxlen=10)  # recent: (return, success) of the last episodes
+    while global_step < total_timesteps:
+        if first:  # a new episode in a rollout environment drawn per episode
+            rollout_env = random.randrange(n_envs)
+            obs, _ = envs[rollout_env].reset()
+            episode_return = 0.0
+        # ALGO LOGIC: the method's update, then plan and act
+        # update the model on a training environment sampled per step
+        k = random.randrange(n_envs)
+        info = update(model, optimizers, scale, *replay.sample(k, args.batch_size), discount, args)
+        # plan and act in the rollout environment with the base weights
+        action, prev_mean = plan(model, model.base_weights(), torch.as_tensor(obs, dtype=torch.float32, device=device),
+                                 None if first else prev_mean, discount, args, explore=True)
+        action = action.cpu().numpy()
+        # TRY NOT TO MODIFY: step the environment, record the transition, log and checkpoint
+        next_obs, reward, terminated, truncated, step_info = envs[rollout_env].step(action)
+        replay.add(rollout_env, obs, action, reward, next_obs, first)
+        episode_return += float(reward)
+        obs, first, global_step = next_obs, False, global_step + 1
+        if terminated or truncated:
+            writer.add_scalar("charts/episodic_return", episode_return, global_step)
+            writer.add_scalar("charts/episodic_success", float(step_info.get("success", 0.0)), global_step)
+            writer.add_scalar(f"charts/env{envs[rollout_env].unwrapped.env_id}/episodic_return", episode_return, global_step)
+            recent.append((episode_return, float(step_info.get("success", 0.0))))
+            first = True
+        if global_step % args.log_every == 0 or global_step == total_timesteps:
+            sps = int((global_step - start_step) / (time.time() - start_time))
+            for key, value in info.items():
+                writer.add_scalar(f"losses/{key}", value.item(), global_step)
+            writer.add_scalar("charts/q_scale", float(scale.value), global_step)
+            writer.add_scalar("charts/SPS", sps, global_step)
+            print(f"step {global_step}/{total_timesteps} | wm_loss {float(info['wm_loss']):.3f} | "
+                  f"pi_loss {float(info['pi_loss']):.3f} | {progress_text(global_step, total_timesteps, start_step, start_time, started, recent, args.family)}", flush=True)
+            writer.flush()
+        if first and (global_step // args.checkpoint_every > saved_step // args.checkpoint_every or time.time() - saved_at > 60 * args.checkpoint_minutes):
+            save()  # deferred to an episode's end: a resumed run then starts the next episode as this run does
+    save()
+    print(f"saved {checkpoint_path}", flush=True)
+    if args.evaluate_after_training:
+        evaluate(model, scale, layout, n_wm + n_pi, discount, writer, device, args, progress_path=os.path.join(run_dir, "evaluation_progress.pt"))
+    writer.close()
+    if args.track:
+        wandb.finish()
+
+
+# ---------------------------------------------------------------------------------------------
+# Argument checks: every flag against its range, before any work
+# ---------------------------------------------------------------------------------------------
+def validate_args(args: Args) -> tuple[int, int, int]:
+    if args.family not in FAMILIES:
+        raise SystemExit(f"error: unknown family {args.family!r}; valid families: {', '.join(FAMILIES)}")
+    if not 0 < args.num_elites <= args.num_samples or not 0 <= args.num_pi_trajs < args.num_samples:
+        raise SystemExit("error: need 0 < --num-elites <= --num-samples and 0 <= --num-pi-trajs < --num-samples, got "
+                         f"{args.num_elites}, {args.num_samples}, {args.num_pi_trajs}")
+    if any(steps < 0 for steps in args.offline_adapt_steps):
+        raise SystemExit(f"error: --offline-adapt-steps must be non-negative, got {args.offline_adapt_steps}")
+    for name in ("checkpoint", "resume"):
+        path = getattr(args, name)
+        if path is not None and not os.path.isfile(path):
+            raise SystemExit(f"error: --{name} {path!r} does not exist")
+    if args.eval_only and args.checkpoint is None:
+        raise SystemExit("error: --eval-only needs --checkpoint PATH")
+    if args.eval_only and args.resume:
+        raise SystemExit("error: --eval-only and --resume exclude each other")
+    check_counts(args, ("total_timesteps", "batch_size", "horizon", "iterations", "num_samples", "log_every", "checkpoint_every",
+                        "checkpoint_minutes", "threads", "rank", "context_episodes", "eval_episodes", "context_dim", "embed_hidden",
+                        "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps", "decoder_coef"))
+    if args.num_bins < 2 or args.vmin >= args.vmax:
+        raise SystemExit(f"error: need --num-bins >= 2 and --vmin < --vmax, got {args.num_bins}, {args.vmin}, {args.vmax}")
+    budget = resolve_budget(args)  # (total agent steps, --seed-steps, prefill agent steps)
+    if not (args.eval_only or args.dry_run):  # the budget matters only to a training run
+        check_budget(budget[0], budget[2])
+    return budget
+
+
+def default_discount(args: Args, episode_length: int) -> float:
+    """--discount (the paper's 0.99), or with --discount-heuristic TD-MPC2's clip((L/5-1)/(L/5), 0.95, 0.995)."""
+    if not args.discount_heuristic:
+        return args.discount
+    return min(max((episode_length / 5 - 1) / (episode_length / 5), 0.95), 0.995)
+
+
+# ---------------------------------------------------------------------------------------------
+# Run plumbing: checked checkpoints, the resume contract, compile rebinding, progress
 # ---------------------------------------------------------------------------------------------
 # flags that cannot change a run's results: --resume takes them anew if given, else from the checkpoint
 RESUME_FREE = ("threads", "cuda", "compile", "log_every", "checkpoint_every", "checkpoint_minutes", "track", "wandb_project_name", "wandb_entity",
@@ -791,44 +971,6 @@ def random_prefill(envs: dict, replay, total: int) -> int:
 # ---------------------------------------------------------------------------------------------
 # Persistence
 # ---------------------------------------------------------------------------------------------
-def global_rng_state() -> dict:
-    """Python's, NumPy's and torch's generators: restored, a resumed run draws what an uninterrupted one would."""
-    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None}
-
-
-def set_global_rng_state(state: dict) -> None:
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
-    torch.set_rng_state(state["torch"])
-    if state["cuda"] is not None and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
-
-
-def weights_digest(model) -> str:
-    """Identifies the weights an evaluation belongs to: progress saved for other weights is not taken up."""
-    digest = hashlib.sha256()
-    for tensor in model.state_dict().values():
-        digest.update(tensor.detach().cpu().numpy().tobytes())
-    return digest.hexdigest()
-
-
-def save_evaluation_progress(path: str, results: dict, model) -> None:
-    """After each environment: an evaluation killed later goes on from the next one (walker's take minutes each)."""
-    torch.save({"results": results, "rng": global_rng_state(), "weights": weights_digest(model)}, path + ".tmp")
-    os.replace(path + ".tmp", path)
-
-
-def load_evaluation_progress(path: str, model) -> dict:
-    progress = torch.load(path, map_location="cpu", weights_only=False)
-    if progress["weights"] != weights_digest(model):
-        print(f"ignoring {path}: saved by an evaluation of other weights", flush=True)
-        return {"online": {}, "offline": {}}
-    set_global_rng_state(progress["rng"])
-    print(f"resumed the evaluation from {path}: {len(progress['results']['online'])} environments done", flush=True)
-    return progress["results"]
-
-
 def save_checkpoint(path, global_step, burst_left, model, optimizers, scale, replay, args: Args, envs=()):
     state = {
         "global_step": global_step, "burst_left": burst_left, "args": vars(args), "model": model.state_dict(),
@@ -857,219 +999,6 @@ def load_checkpoint(path, model, optimizers=None, scale=None, replay=None, resto
     if restore_rng:
         set_global_rng_state(state["rng"])
     return state
-
-
-# ---------------------------------------------------------------------------------------------
-# Evaluation: the shared protocols with DR's adapt (gradient steps on fresh LoRA) and act (MPPI)
-# ---------------------------------------------------------------------------------------------
-def evaluate(model, scale, layout, n_adapt, discount, writer, device, args: Args, progress_path: str | None = None) -> dict:
-    model.eval().requires_grad_(False)  # the base is frozen: only the adapters phi are optimised
-    current = {"weights": model.base_weights(), "mean": None}
-    # One phi, Adam and Q scale for every environment, reset in place: the compiled adapt_step guards on these
-    # objects, so fresh ones per environment recompiled it until dynamo's recompile limit sent it back to eager.
-    phi = torch.zeros(n_adapt, device=device, requires_grad=True)
-    current.update(phi=phi, optimizer=torch.optim.Adam([phi], lr=args.learning_rate), scale=copy.deepcopy(scale))
-
-    def reset_adapters(context):
-        """Fresh adapters (a zero update), a fresh Adam, the pretrained Q scale, the context data."""
-        with torch.no_grad():
-            phi.copy_(lora_template(layout, n_adapt))
-            for moments in current["optimizer"].state.values():  # step 0 and zero moments: exactly a new Adam
-                for value in moments.values():
-                    value.zero_()
-            current["scale"].value.copy_(scale.value)
-        current.update(replay=context_replay(context, device, args), weights=model.base_weights())
-
-    def adapt(context, steps: int = 1):
-        for _ in range(steps):
-            adapt_step(model, current["phi"], current["optimizer"], current["scale"], layout,
-                       *current["replay"].sample(0, args.batch_size), discount, args)
-        with torch.no_grad():  # the planner uses plain merged weights
-            current["weights"] = adapted_weights(model, current["phi"], layout)
-
-    def act(obs, first_step):
-        obs = torch.as_tensor(obs, dtype=torch.float32, device=device)
-        action, current["mean"] = plan(model, current["weights"], obs, None if first_step else current["mean"], discount, args, explore=False)
-        return action.cpu().numpy()
-
-    results = {"online": {}, "offline": {}}
-    if progress_path and os.path.exists(progress_path):  # an interrupted evaluation: skip the environments it finished
-        results = load_evaluation_progress(progress_path, model)
-    for env_id in range(len(results["online"]), num_envs(args.family)):
-        env = make_env(args.family, env_id, oracle=True, seed=args.seed + 10_000 + env_id)
-        context = collect_episodes(env, args.context_episodes, seed=args.seed + 20_000 + env_id)
-        reset_adapters(context)
-        no_adapt = lambda c: None  # noqa: E731  Exp 1: the oracle knows the environment, it does not adapt
-        online = online_adaptation(env, context, no_adapt, act, args.online_eval_steps, seed=args.seed + 30_000 + env_id, desc=f"eval env {env_id} online")
-        for record in online:
-            writer.add_scalar(f"eval/online/env{env_id}/episodic_return", record["return"], record["step"])
-            writer.add_scalar(f"eval/online/env{env_id}/success", record["success"], record["step"])
-        results["online"][env_id], results["offline"][env_id] = online, {}
-        for steps in args.offline_adapt_steps:  # Exp 2: fresh adapters, `steps` gradient steps, frozen
-            reset_adapters(context)
-            offline = offline_adaptation(env, context, lambda c: adapt(c, steps), act, args.eval_episodes, seed=args.seed + 40_000 + env_id, desc=f"eval env {env_id} offline", video=args.capture_video and f"{writer.log_dir}/videos/env{env_id}_offline_{steps}steps.mp4")
-            offline_return = float(np.mean([r["return"] for r in offline]))
-            writer.add_scalar(f"eval/offline/env{env_id}/episodic_return", offline_return, steps)
-            writer.add_scalar(f"eval/offline/env{env_id}/success", float(np.mean([r["success"] for r in offline])), steps)
-            results["offline"][env_id][steps] = offline
-        offline_returns = ", ".join(f"{np.mean([r['return'] for r in recs]):.1f} ({n} steps)" for n, recs in results["offline"][env_id].items())
-        print(f"eval env {env_id}: online last-episode return {online[-1]['return'] if online else float('nan'):.1f}, "
-              f"offline return {offline_returns}", flush=True)
-        if progress_path:
-            save_evaluation_progress(progress_path, results, model)
-    # family averages: every environment has episodes of equal length, so episode k ends at the same step
-    num_episodes = min(len(r) for r in results["online"].values())
-    for k in range(num_episodes):
-        step = results["online"][0][k]["step"]
-        for key in ("return", "success"):
-            value = np.mean([results["online"][e][k][key] for e in results["online"]])
-            writer.add_scalar(f"eval/online/{'episodic_return' if key == 'return' else key}", value, step)
-    for steps in args.offline_adapt_steps:
-        offline_means = [np.mean([r["return"] for r in recs[steps]]) for recs in results["offline"].values()]
-        mean, ci = mean_ci(offline_means)
-        writer.add_scalar("eval/offline/episodic_return", mean, steps)
-        writer.add_scalar("eval/offline/success", np.mean([r["success"] for recs in results["offline"].values() for r in recs[steps]]), steps)
-        print(f"eval offline ({steps} steps): return {mean:.1f} +- {ci:.1f} (95% t-CI across environments)", flush=True)
-    writer.flush()
-    if progress_path and os.path.exists(progress_path):  # complete: another evaluation of these weights starts afresh
-        os.remove(progress_path)
-    return results
-
-
-# ---------------------------------------------------------------------------------------------
-# Main: set-up, prefill, burst, online pretraining loop, evaluation
-# ---------------------------------------------------------------------------------------------
-def main(args: Args):
-    started = time.time()
-    validate_args(args)
-    purge_step = None
-    if args.resume or args.eval_only:  # the checkpoint's arguments; a flag given explicitly with another value is an error
-        saved = read_checkpoint(args.resume or args.checkpoint)
-        architecture = ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic")  # the rank is a test-time choice here
-        adopt_args(args, saved["args"], None if args.resume else architecture, args.resume or args.checkpoint)  # --resume: every flag
-        purge_step, saved = saved["global_step"] + 1 if args.resume else None, None  # checkpoints are large: keep only the step
-    total_timesteps, seed_steps, prefill = validate_args(args)
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    torch.backends.cudnn.deterministic = args.torch_deterministic
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
-    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-    if args.compile == "auto":  # measured break-even: README "Speed"
-        args.compile = "on" if total_timesteps >= 10_000 else "off"
-    if args.compile == "on":  # rebinds the module's hot functions: every call below, evaluation included, takes the compiled ones
-        global update, plan, adapt_step
-        update, plan, adapt_step = compiled(update, device, cuda_graphs=False), compiled(plan, device), compiled(adapt_step, device, cuda_graphs=False)
-
-    n_envs, ep_len = num_envs(args.family), episode_length(args.family)
-    envs = [make_env(args.family, env_id, oracle=True, seed=args.seed + env_id) for env_id in range(n_envs)]
-    for env_id, env in enumerate(envs):
-        env.action_space.seed(args.seed + env_id)
-    obs_dim, act_dim = envs[0].observation_space.shape[0], envs[0].action_space.shape[0]
-    discount = default_discount(args, ep_len)
-
-    model = WorldModel(obs_dim, act_dim, args.model_size, args).to(device)
-    layout, n_wm, n_pi = lora_layout(model, args.rank)
-    print(f"base parameters: {sum(p.numel() for p in model.base_parameters())}")
-    print(f"adapter parameters: {n_wm} (world model) + {n_pi} (policy)", flush=True)
-    if args.dry_run:
-        return
-    print(describe_device(args, device))
-    if args.capture_video and (problem := render_problem(args.family)):  # one line at the start, not a traceback at the first video
-        print(f"warning: --capture-video records nothing: {problem}", flush=True)
-        args.capture_video = False
-    if not args.eval_only:
-        print(f"budget: {total_timesteps} agent steps: a {prefill}-step random prefill, {args.burst_updates} burst updates, then training", flush=True)
-
-    if args.resume and args.run_dir is None:  # keep logging into the interrupted run
-        args.run_dir = os.path.dirname(os.path.abspath(args.resume))
-    run_dir = args.run_dir or f"runs/{args.family}__{args.exp_name}__{args.seed}__{int(time.time())}"
-    if args.track:  # before the SummaryWriter, whose scalars W&B mirrors (sync_tensorboard)
-        import wandb
-
-        wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, sync_tensorboard=True, config=vars(args),
-                   name=os.path.basename(os.path.abspath(run_dir)), save_code=True)
-    writer = SummaryWriter(run_dir, purge_step=purge_step)  # a resumed run replaces the events logged after its checkpoint
-    writer.add_text("hyperparameters", hyperparameter_text(args, total_timesteps=total_timesteps, seed_steps=seed_steps, discount=discount, device=device))
-    scale = RunningScale(args.tau, device)
-    if args.eval_only:
-        load_checkpoint(args.checkpoint, model, scale=scale)
-        evaluate(model, scale, layout, n_wm + n_pi, discount, writer, device, args)
-        writer.close()
-        if args.track:
-            wandb.finish()
-        return
-
-    optimizers = make_optimizers(model, args)
-    replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
-    checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
-    global_step, burst_left, saved_at, saved_step = 0, args.burst_updates, time.time(), 0
-
-    def save():  # atomic; also right after the prefill and the burst, and every --checkpoint-minutes
-        nonlocal saved_at, saved_step
-        save_checkpoint(checkpoint_path, global_step, burst_left, model, optimizers, scale, replay, args, envs)
-        saved_at, saved_step = time.time(), global_step
-
-    if args.resume:
-        state = load_checkpoint(args.resume, model, optimizers, scale, replay, restore_rng=True)
-        global_step, burst_left, saved_step = state["global_step"], state.get("burst_left", 0), state["global_step"]
-        for env, env_rng in zip(envs, state["rng"].get("envs", [])):  # checkpoints are written at episode ends
-            set_rng_state(env, env_rng)
-        print(f"resumed from {args.resume} at step {global_step}", flush=True)
-    else:
-        global_step += random_prefill(dict(enumerate(envs)), replay, prefill)  # update buffers: every environment
-        save()
-    if burst_left:  # also a run killed during its burst: it resumes from the checkpoint after the prefill
-        print(f"prefilled {global_step} steps; {burst_left} burst updates", flush=True)
-        for _ in progress_bar(range(burst_left), desc="burst"):
-            k = random.randrange(n_envs)
-            update(model, optimizers, scale, *replay.sample(k, args.batch_size), discount, args)
-        burst_left = 0
-        save()
-
-    first = True  # an episode starts at the top of the loop, also where a resumed run continues
-    start_time, start_step, recent = time.time(), global_step, deque(maxlen=10)  # recent: (return, success) of the last episodes
-    while global_step < total_timesteps:
-        if first:  # a new episode in a rollout environment drawn per episode
-            rollout_env = random.randrange(n_envs)
-            obs, _ = envs[rollout_env].reset()
-            episode_return = 0.0
-        # update the model on a training environment sampled per step
-        k = random.randrange(n_envs)
-        info = update(model, optimizers, scale, *replay.sample(k, args.batch_size), discount, args)
-        # plan and act in the rollout environment with the base weights
-        action, prev_mean = plan(model, model.base_weights(), torch.as_tensor(obs, dtype=torch.float32, device=device),
-                                 None if first else prev_mean, discount, args, explore=True)
-        action = action.cpu().numpy()
-        next_obs, reward, terminated, truncated, step_info = envs[rollout_env].step(action)
-        replay.add(rollout_env, obs, action, reward, next_obs, first)
-        episode_return += float(reward)
-        obs, first, global_step = next_obs, False, global_step + 1
-        if terminated or truncated:
-            writer.add_scalar("charts/episodic_return", episode_return, global_step)
-            writer.add_scalar("charts/episodic_success", float(step_info.get("success", 0.0)), global_step)
-            writer.add_scalar(f"charts/env{envs[rollout_env].unwrapped.env_id}/episodic_return", episode_return, global_step)
-            recent.append((episode_return, float(step_info.get("success", 0.0))))
-            first = True
-        if global_step % args.log_every == 0 or global_step == total_timesteps:
-            sps = int((global_step - start_step) / (time.time() - start_time))
-            for key, value in info.items():
-                writer.add_scalar(f"losses/{key}", value.item(), global_step)
-            writer.add_scalar("charts/q_scale", float(scale.value), global_step)
-            writer.add_scalar("charts/SPS", sps, global_step)
-            print(f"step {global_step}/{total_timesteps} | wm_loss {float(info['wm_loss']):.3f} | "
-                  f"pi_loss {float(info['pi_loss']):.3f} | {progress_text(global_step, total_timesteps, start_step, start_time, started, recent, args.family)}", flush=True)
-            writer.flush()
-        if first and (global_step // args.checkpoint_every > saved_step // args.checkpoint_every or time.time() - saved_at > 60 * args.checkpoint_minutes):
-            save()  # deferred to an episode's end: a resumed run then starts the next episode as this run does
-    save()
-    print(f"saved {checkpoint_path}", flush=True)
-    if args.evaluate_after_training:
-        evaluate(model, scale, layout, n_wm + n_pi, discount, writer, device, args, progress_path=os.path.join(run_dir, "evaluation_progress.pt"))
-    writer.close()
-    if args.track:
-        wandb.finish()
 
 
 if __name__ == "__main__":

@@ -454,11 +454,16 @@ def test_encoder_probe_learns_a_goal_that_shifts_the_reward():
 
 
 def test_learn_recipes_and_budget_training_curves(monkeypatch):
-    """The budget recipe trains ST on each Cheetah/Walker embodiment (distinct run names); its runs are aggregated as
-    training curves per step window and embodiment, seeds averaged, and Exp 3-5 wait for the chosen budget."""
+    """The budget recipe trains ST on each Cheetah/Walker embodiment, one Push goal and Go1 forward (distinct run names);
+    its runs are aggregated as training curves per step window and embodiment, seeds averaged, and Exp 3-5 wait for the
+    chosen budget."""
     budget = sweep.recipe("budget", "learn")
-    assert sorted((r.train_env, r.seed) for r in budget) == [(0, 1), (0, 2), (1, 1), (1, 2)]
-    assert len({r.name for r in budget}) == 4 and all("--train-env-id" in r.command("d") for r in budget)
+    assert sorted((r.family, r.train_env, r.seed) for r in budget) == [
+        ("cheetah_walker", 0, 1), ("cheetah_walker", 0, 2), ("cheetah_walker", 1, 1), ("cheetah_walker", 1, 2),
+        ("go1", 0, 1), ("go1", 0, 2), ("push", 0, 1), ("push", 0, 2)]
+    assert len({r.name for r in budget}) == 8 and all("--train-env-id" in r.command("d") for r in budget)
+    steps = {r.family: r.extra[r.extra.index("--total-timesteps") + 1] for r in budget}
+    assert steps == {"cheetah_walker": "40000", "push": "100000", "go1": "100000"}
     exp12 = sweep.plan_runs(["exp1", "exp2"], "learn")
     assert {(r.family, r.size) for r in exp12} == {("reach", "F"), ("walker", "F")} and len(exp12) == 2 * 4 * 3
     decoder_and_controls = sweep.plan_runs(["decoder"], "learn")  # Exp 1/2's CLAW runs with --decoder-coef, named apart
