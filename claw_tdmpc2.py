@@ -22,7 +22,10 @@ import copy
 import math
 import os
 import random
+import shutil
+import signal
 import subprocess
+import sys
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -166,6 +169,8 @@ class Args:
     --checkpoint-every, --checkpoint-minutes, --track, --wandb-project-name, --wandb-entity, --capture-video may be given anew)"""
     run_dir: Optional[str] = None
     """default runs/{family}__{exp_name}__{seed}__{unix time}"""
+    overwrite: bool = False
+    """start over in a --run-dir that already holds a run (its checkpoint and TensorBoard events are deleted)"""
     track: bool = False
     """mirror the TensorBoard scalars and the hyperparameters to Weights & Biases (WANDB_MODE=offline: no network needed)"""
     wandb_project_name: str = "claw"
@@ -191,7 +196,7 @@ def symexp(x):
 def two_hot(x, args: Args):
     """Scalars [..., 1] -> soft two-hot targets [..., num_bins] in symlog space."""
     bin_size = (args.vmax - args.vmin) / (args.num_bins - 1)
-    x = (symlog(x).clamp(args.vmin, args.vmax) - args.vmin) / bin_size
+    x = (symlog(x).nan_to_num(nan=0.0).clamp(args.vmin, args.vmax) - args.vmin) / bin_size
     low = x.floor().clamp(max=args.num_bins - 2)
     upper_weight = x - low
     target = torch.zeros(*x.shape[:-1], args.num_bins, device=x.device)
@@ -699,20 +704,21 @@ def evaluate(model, hypernet, layout, discount, writer, device, args: Args, prog
         action, current["mean"] = plan(model, current["weights"], obs, None if first_step else current["mean"], discount, args, explore=False)
         return action.cpu().numpy()
 
-    return evaluate_family(range(num_envs(args.family)), adapt, act, writer, args, progress_path=progress_path, weights=weights_digest(model, hypernet))
+    return evaluate_family(range(num_envs(args.family)), adapt, act, writer, args, progress_path=progress_path, after_each_env=lambda: stop_if_interrupted(progress_path and os.path.dirname(progress_path)), weights=weights_digest(model, hypernet))
 
 
 # ---------------------------------------------------------------------------------------------
 # Main: set-up, context collection, prefill, burst, online pretraining loop, evaluation
 # ---------------------------------------------------------------------------------------------
-def main(args: Args):
+def main(args: Args, typed: set | None = None):
     started = time.time()
     validate_args(args)
     purge_step = None
     if args.resume or args.eval_only:  # the checkpoint's arguments; a flag given explicitly with another value is an error
         saved = read_checkpoint(args.resume or args.checkpoint)
         architecture = ("family", "model_size", "rank", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim", "decoder_coef")
-        adopt_args(args, saved["args"], None if args.resume else architecture, args.resume or args.checkpoint)  # --resume: every flag
+        free = RESUME_FREE + (() if args.resume else EVALUATION_FLAGS)  # --eval-only: the run's own evaluation unless given anew
+        adopt_args(args, saved["args"], None if args.resume else architecture + EVALUATION_FLAGS, args.resume or args.checkpoint, typed, free)
         purge_step, saved = saved["global_step"] + 1 if args.resume else None, None  # checkpoints are large: keep only the step
     total_timesteps, seed_steps, prefill = validate_args(args)
     random.seed(args.seed)
@@ -753,6 +759,7 @@ def main(args: Args):
     if args.resume and args.run_dir is None:  # keep logging into the interrupted run
         args.run_dir = os.path.dirname(os.path.abspath(args.resume))
     run_dir = args.run_dir or f"runs/{args.family}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    check_run_dir(run_dir, args)
     if args.track:  # before the SummaryWriter, whose scalars W&B mirrors (sync_tensorboard)
         import wandb
 
@@ -762,6 +769,7 @@ def main(args: Args):
     writer.add_text("hyperparameters", hyperparameter_text(args, total_timesteps=total_timesteps, seed_steps=seed_steps, discount=discount, device=device))
     scale = RunningScale(args.tau, device)
     if args.eval_only:
+        print(describe_evaluation(args), flush=True)
         load_checkpoint(args.checkpoint, model, hypernet)
         evaluate(model, hypernet, layout, discount, writer, device, args)
         writer.close()
@@ -778,6 +786,7 @@ def main(args: Args):
         nonlocal saved_at, saved_step
         save_checkpoint(checkpoint_path, global_step, burst_left, model, hypernet, optimizers, scale, replay, pool, args, envs)
         saved_at, saved_step = time.time(), global_step
+        stop_if_interrupted(run_dir, global_step)
 
     pool = ContextPool([make_env(args.family, env_id, seed=args.seed + 200 + env_id) for env_id in range(n_envs)], args, device)
     if args.resume:
@@ -795,8 +804,9 @@ def main(args: Args):
         print(f"prefilled {global_step} steps; {burst_left} burst updates", flush=True)
         for _ in progress_bar(range(burst_left), desc="burst"):
             k = random.randrange(n_envs)
-            update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(k, args.batch_size),
+            info = update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(k, args.batch_size),
                    pool.sample(k), discount, args)
+            stop_if_diverged(info, global_step, checkpoint_path)
         burst_left = 0
         save()
 
@@ -813,6 +823,7 @@ def main(args: Args):
         k = random.randrange(n_envs)
         info = update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(k, args.batch_size),
                       pool.sample(k), discount, args)
+        stop_if_diverged(info, global_step, checkpoint_path)
         # plan and act in the rollout environment with its freshly generated adapters
         with torch.no_grad():
             weights = adapted_weights(model, hypernet(rollout_context), layout)
@@ -840,7 +851,7 @@ def main(args: Args):
             print(f"step {global_step}/{total_timesteps} | wm_loss {float(info['wm_loss']):.3f} | "
                   f"adapter_norm {float(info['adapter_norm']):.3f} | {progress_text(global_step, total_timesteps, start_step, start_time, started, recent, args.family)}", flush=True)
             writer.flush()
-        if first and (global_step // args.checkpoint_every > saved_step // args.checkpoint_every or time.time() - saved_at > 60 * args.checkpoint_minutes):
+        if first and (global_step // args.checkpoint_every > saved_step // args.checkpoint_every or time.time() - saved_at > 60 * args.checkpoint_minutes or STOP_SIGNAL):
             save()  # deferred to an episode's end: a resumed run then starts the next episode as this run does
     save()
     print(f"saved {checkpoint_path}", flush=True)
@@ -868,6 +879,8 @@ def validate_args(args: Args) -> tuple[int, int, int]:
         raise SystemExit(f"error: need 1 <= --context-episodes ({args.context_episodes}) <= --context-pool-episodes ({args.context_pool_episodes}) and --context-refresh-every >= 0")
     if args.eval_only and args.checkpoint is None:
         raise SystemExit("error: --eval-only needs --checkpoint PATH")
+    if args.checkpoint is not None and not args.eval_only:
+        raise SystemExit("error: --checkpoint is read by --eval-only only; to continue training a run use --resume PATH")
     if args.eval_only and args.resume:
         raise SystemExit("error: --eval-only and --resume exclude each other")
     check_counts(args, ("total_timesteps", "batch_size", "horizon", "iterations", "num_samples", "log_every", "checkpoint_every",
@@ -875,6 +888,7 @@ def validate_args(args: Args) -> tuple[int, int, int]:
                         "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps", "decoder_coef"))
     if args.num_bins < 2 or args.vmin >= args.vmax:
         raise SystemExit(f"error: need --num-bins >= 2 and --vmin < --vmax, got {args.num_bins}, {args.vmin}, {args.vmax}")
+    check_ranges(args)
     budget = resolve_budget(args)  # (total agent steps, --seed-steps, prefill agent steps)
     if not (args.eval_only or args.dry_run):  # the budget matters only to a training run
         check_budget(budget[0], budget[2])
@@ -894,11 +908,147 @@ def default_discount(args: Args, episode_length: int) -> float:
 # flags that cannot change a run's results: --resume takes them anew if given, else from the checkpoint
 RESUME_FREE = ("threads", "cuda", "compile", "log_every", "checkpoint_every", "checkpoint_minutes", "track", "wandb_project_name", "wandb_entity",
                "capture_video")
-NOT_SAVED = ("run_dir", "resume", "checkpoint", "eval_only", "dry_run")  # this invocation's own
+NOT_SAVED = ("run_dir", "resume", "checkpoint", "eval_only", "dry_run", "overwrite")  # this invocation's own
 
 
 def flag(key: str) -> str:
     return "--" + key.replace("_", "-")
+
+# numeric flags' valid ranges, checked before any work (flags a script lacks are skipped): flag -> (test, range in words)
+MAX_SEED = 2**32 - 1 - 100_000  # NumPy takes seeds up to 2**32 - 1, and the environments' seeds add up to 50,000 + env id
+RANGES = {
+    "seed": (lambda v: 0 <= v <= MAX_SEED, f"an integer in 0..{MAX_SEED}"),
+    "learning_rate": (lambda v: v > 0, "> 0"),
+    "hypernet_lr": (lambda v: v > 0, "> 0"),
+    "encoder_lr_scale": (lambda v: v > 0, "> 0"),
+    "grad_clip_norm": (lambda v: v > 0, "> 0"),
+    "rho": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "tau": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "discount": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "temperature": (lambda v: v > 0, "> 0"),
+    "min_std": (lambda v: v > 0, "> 0"),
+    "consistency_coef": (lambda v: v >= 0, ">= 0"),
+    "reward_coef": (lambda v: v >= 0, ">= 0"),
+    "value_coef": (lambda v: v >= 0, ">= 0"),
+    "entropy_coef": (lambda v: v >= 0, ">= 0"),
+    "adapter_l2": (lambda v: v >= 0, ">= 0"),
+    "decoder_coef": (lambda v: v >= 0, ">= 0"),
+}
+# flags an --eval-only run takes from the checkpoint unless given anew: how the run was evaluated and planned
+EVALUATION_FLAGS = ("context_episodes", "online_eval_steps", "offline_adapt_steps", "eval_episodes", "iterations", "num_samples",
+                    "num_pi_trajs", "num_elites", "temperature", "min_std", "max_std")
+
+
+def check_ranges(args: Args):
+    """One error line for the first flag out of its range (RANGES, the std and two-hot ranges, the horizon against the
+    episode, the rank against the model's narrowest adapted layer) or not finite."""
+    for key, value in vars(args).items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise SystemExit(f"error: {flag(key)} must be finite, got {value}")
+    for key, (valid, text) in RANGES.items():
+        if hasattr(args, key) and not valid(getattr(args, key)):
+            raise SystemExit(f"error: {flag(key)} must be {text}, got {getattr(args, key)}")
+    if args.min_std > args.max_std:
+        raise SystemExit(f"error: need --min-std <= --max-std, got {args.min_std} > {args.max_std}")
+    if not 0 < args.horizon < episode_length(args.family):
+        raise SystemExit(f"error: --horizon must be in 1..{episode_length(args.family) - 1} (below {args.family}'s episode "
+                         f"length), got {args.horizon}")
+    encoder_hidden, _, mlp_hidden, _ = MODEL_SIZES[args.model_size]
+    narrowest = min([*encoder_hidden, mlp_hidden])
+    if hasattr(args, "rank") and not 1 <= args.rank <= narrowest:
+        raise SystemExit(f"error: --rank must be in 1..{narrowest} (the narrowest adapted layer of model size "
+                         f"{args.model_size}), got {args.rank}")
+
+
+def typed_flags(argv: list[str]) -> set[str]:
+    """The Args fields named on a command line (--flag, --flag=value, --no-flag): given explicitly, even with the default value."""
+    fields = set(Args.__dataclass_fields__)
+    names = {word[2:].split("=", 1)[0].replace("-", "_") for word in argv if word.startswith("--")}
+    return {name if name in fields else name.removeprefix("no_") for name in names} & fields
+
+
+def describe_evaluation(args: Args) -> str:
+    """What an evaluation will run, in one line, with the flags that shorten it."""
+    sweep = f", the Exp 2 sweep {list(args.offline_adapt_steps)} adapter steps" if hasattr(args, "offline_adapt_steps") else ""
+    return (f"evaluation per test environment: Exp 1 {args.online_eval_steps} online agent steps, Exp 2 {args.eval_episodes} "
+            f"episodes{sweep}; planner {args.num_samples} samples x {args.iterations} iterations "
+            "(shorter: --online-eval-steps, --eval-episodes)")
+
+
+def check_run_dir(run_dir: str, args: Args):
+    """A --run-dir that already holds a run (a checkpoint or TensorBoard events) is not reused without a word: its
+    checkpoint would be overwritten and two runs' events mixed. --overwrite deletes them and starts over."""
+    if args.resume or not os.path.isdir(run_dir):
+        return
+    held = sorted(n for n in os.listdir(run_dir) if n in ("checkpoint.pt", "evaluation_progress.pt") or n.startswith("events.out.tfevents"))
+    if held and not args.overwrite:
+        resume = f"continue it with --resume {os.path.join(run_dir, 'checkpoint.pt')}, " if "checkpoint.pt" in held else ""
+        raise SystemExit(f"error: --run-dir {run_dir} already holds a run ({held[0]}); {resume}or start over with --overwrite")
+    for name in held:
+        os.remove(os.path.join(run_dir, name))
+
+
+STOP_SIGNAL = []  # the signal (SIGINT, SIGTERM) that asked this run to stop at its next exact resume point
+
+
+def stop_gracefully_on_signals():
+    """SIGINT/SIGTERM: the run goes on to the next point where resume is exact (an episode's end, the end of the prefill
+    or burst, an evaluated environment), saves, prints how to resume and exits 128 + the signal; a second one stops at once."""
+
+    def handler(signum, frame):
+        if STOP_SIGNAL:
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+        STOP_SIGNAL.append(signum)
+        print(f"{signal.Signals(signum).name}: saving at the next episode end, then stopping (again: stop at once)", flush=True)
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, handler)
+
+
+def stop_if_interrupted(run_dir: str | None, step: int | None = None):
+    """After a save: exit if a signal asked the run to stop, with the command that resumes it."""
+    if not STOP_SIGNAL:
+        return
+    name = signal.Signals(STOP_SIGNAL[0]).name
+    if run_dir is None:
+        print(f"{name}: stopped; an --eval-only run keeps no progress, run it again", flush=True)
+    else:
+        at = f" at step {step}" if step is not None else " during the evaluation (its progress is saved)"
+        resume = f"python {os.path.basename(__file__)} --resume {os.path.join(run_dir, 'checkpoint.pt')}"
+        print(f"{name}: stopped{at}; resume with: {resume}", flush=True)
+    raise SystemExit(128 + STOP_SIGNAL[0])
+
+
+def stop_if_diverged(info: dict, step: int, checkpoint_path: str | None):
+    """A non-finite loss or gradient norm ends the run with one line: the step, the quantity, the last finite checkpoint."""
+    watched = {k: v for k, v in info.items() if "loss" in k or k == "grad_norm"}  # not e.g. posthoc's NaN adapter_norm
+    values = torch.stack([torch.as_tensor(v, dtype=torch.float32).detach().reshape(()).cpu() for v in watched.values()])
+    if bool(torch.isfinite(values).all()):
+        return
+    key, value = next((k, v) for k, v in zip(watched, values) if not torch.isfinite(v))
+    kept = f"; {checkpoint_path} holds the last finite weights" if checkpoint_path and os.path.exists(checkpoint_path) else ""
+    raise SystemExit(f"error: the run diverged at step {step}: {key} is {float(value)}{kept}; "
+                     "lower --learning-rate or --grad-clip-norm")
+
+
+def atomic_save(state: dict, path: str):
+    """torch.save to path.tmp, then rename: a kill mid-save never leaves a truncated file. A failed write (a full disk)
+    ends the run with one line, the temporary file removed and the previous file intact; so do non-finite weights (a
+    diverged run), so that the file on disk keeps the last finite ones."""
+    if any(not bool(torch.isfinite(t).all()) for t in state.get("model", {}).values() if t.is_floating_point()):
+        raise SystemExit(f"error: the run diverged before step {state.get('global_step')}: its weights are not finite; "
+                         f"{path} keeps the last finite ones; lower --learning-rate or --grad-clip-norm")
+    try:
+        torch.save(state, path + ".tmp")
+    except (OSError, RuntimeError) as error:  # a full disk: OSError, or RuntimeError ("unexpected pos") from the zip writer
+        if os.path.exists(path + ".tmp"):
+            os.remove(path + ".tmp")
+        detail = str(error).splitlines()[0] if str(error) else type(error).__name__
+        kept = "; the previous one is intact" if os.path.exists(path) else ""
+        raise SystemExit(f"error: cannot write {path} ({detail}; {shutil.disk_usage(os.path.dirname(os.path.abspath(path))).free // 2**20} MiB "
+                         f"free){kept}") from None
+    os.replace(path + ".tmp", path)
 
 
 def check_counts(args: Args, positive: tuple[str, ...], nonnegative: tuple[str, ...] = ()):
@@ -959,21 +1109,21 @@ def mismatch(error: Exception) -> str:
     return next((line for line in lines if "size mismatch" in line or "Missing" in line or "Unexpected" in line), lines[0] if lines else "")
 
 
-def adopt_args(args: Args, saved: dict, keys, path: str):
-    """Set args.key = saved[key] for keys (None: every saved argument). A flag given explicitly (it
-    differs from the Args default) with another value than the saved one is an error, except the
-    RESUME_FREE ones, which keep the given value."""
+def adopt_args(args: Args, saved: dict, keys, path: str, typed: set | None = None, free=RESUME_FREE):
+    """Set args.key = saved[key] for keys (None: every saved argument). A flag given explicitly (named on the command
+    line, typed; or, where typed is None, differing from the Args default) with another value than the saved one is an
+    error, except the free ones (RESUME_FREE by default), which keep the given value."""
     defaults = Args()
     for key in [k for k in saved if k not in NOT_SAVED] if keys is None else keys:
         if key not in saved or not hasattr(args, key):
             continue
         given = getattr(args, key)
-        if given != getattr(defaults, key) and given != saved[key]:
-            if key in RESUME_FREE:
+        explicit = key in typed if typed is not None else given != getattr(defaults, key)
+        if explicit and given != saved[key]:
+            if key in free:
                 continue
             raise SystemExit(f"error: {flag(key)} {given} conflicts with {saved[key]} in {path}; leave it out to use the checkpoint's")
         setattr(args, key, saved[key])
-
 
 def compiled(fn, device: torch.device, cuda_graphs: bool = True):
     """--compile: torch.compile(fn), its compile time printed at the first call. On a GPU with cuda_graphs, CUDA graphs
@@ -1074,8 +1224,7 @@ def save_checkpoint(path, global_step, burst_left, model, hypernet, optimizers, 
         "method": os.path.basename(__file__), "dims": (model.obs_dim, model.act_dim),  # checked by read_checkpoint
         "rng": {**global_rng_state(), "envs": [rng_state(env) for env in envs]},  # envs: the rollout environments' next resets
     }
-    torch.save(state, path + ".tmp")
-    os.replace(path + ".tmp", path)  # atomic: a kill mid-save never leaves a truncated checkpoint
+    atomic_save(state, path)
 
 
 def load_checkpoint(path, model, hypernet, optimizers=None, scale=None, replay=None, restore_rng: bool = False):
@@ -1098,4 +1247,5 @@ def load_checkpoint(path, model, hypernet, optimizers=None, scale=None, replay=N
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    stop_gracefully_on_signals()
+    main(tyro.cli(Args), typed=typed_flags(sys.argv[1:]))

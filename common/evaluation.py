@@ -132,7 +132,13 @@ def save_evaluation_progress(path: str, results: dict, weights: str) -> None:
     """After each environment: an evaluation killed later goes on from the next one (walker's take minutes each)."""
     import torch
 
-    torch.save({"results": results, "rng": global_rng_state(), "weights": weights}, path + ".tmp")
+    try:
+        torch.save({"results": results, "rng": global_rng_state(), "weights": weights}, path + ".tmp")
+    except (OSError, RuntimeError) as error:  # a full disk: OSError, or RuntimeError ("unexpected pos") from the zip writer
+        if os.path.exists(path + ".tmp"):
+            os.remove(path + ".tmp")
+        kept = "; the previous one is intact" if os.path.exists(path) else ""
+        raise SystemExit(f"error: cannot write {path} ({str(error).splitlines()[0] if str(error) else type(error).__name__}){kept}") from None
     os.replace(path + ".tmp", path)
 
 
@@ -150,7 +156,7 @@ def load_evaluation_progress(path: str, weights: str) -> dict:
 
 def evaluate_family(env_ids, adapt: AdaptFn, act: ActFn, writer, args, *, online_adapt: AdaptFn | None = None,
                     reset: AdaptFn | None = None, offline_points=None, env_kwargs: dict | None = None,
-                    progress_path: str | None = None, weights: str = "") -> dict:
+                    progress_path: str | None = None, weights: str = "", after_each_env: Callable[[], None] | None = None) -> dict:
     """Exp 1 and Exp 2 on every environment of env_ids, with a script's adapt and act.
 
     Environment env_id of args.family (built with env_kwargs, e.g. the Oracle's oracle=True) gets a fresh pi_con
@@ -159,7 +165,8 @@ def evaluate_family(env_ids, adapt: AdaptFn, act: ActFn, writer, args, *, online
     or, given offline_points (the DR/ST/Oracle sweep), once per point with adapt(context, steps), after reset(context).
     Per-environment and family scalars go to writer, the family's 95% t-CI across environments is printed; with
     progress_path the results are saved after each environment (weights: the digest of the evaluated weights) and an
-    interrupted evaluation resumes from the next one. Returns {"online": {env: records}, "offline": {env: records, or
+    interrupted evaluation resumes from the next one; after_each_env() runs once an environment's results are saved
+    (the scripts stop there on SIGINT/SIGTERM). Returns {"online": {env: records}, "offline": {env: records, or
     {steps: records} with a sweep}}."""
     reset = reset or (lambda context: None)
     sweep = offline_points is not None
@@ -195,6 +202,8 @@ def evaluate_family(env_ids, adapt: AdaptFn, act: ActFn, writer, args, *, online
               f"offline return {offline_text}", flush=True)
         if progress_path:
             save_evaluation_progress(progress_path, results, weights)
+        if after_each_env:
+            after_each_env()
     # family averages: every environment has episodes of equal length, so episode k ends at the same step
     first = next(iter(results["online"]))
     for k in range(min(len(r) for r in results["online"].values())):

@@ -331,9 +331,13 @@ def progress_stamp(run_dir: str) -> tuple:
     return tuple(stamps)
 
 
-def resume_args(run_dir: str) -> list[str]:
+def resume_args(run_dir: str, method: str | None = None) -> list[str]:
+    """--resume from the run's checkpoint; without one, a training script starts over (--overwrite: a run that died
+    before its first checkpoint left TensorBoard events, which the scripts refuse to mix with a new run's)."""
     checkpoint = os.path.join(run_dir, "checkpoint.pt")
-    return ["--resume", checkpoint] if os.path.isfile(checkpoint) else []
+    if os.path.isfile(checkpoint):
+        return ["--resume", checkpoint]
+    return [] if method in CONTROLS else ["--overwrite"]
 
 
 def recorded_command(record: dict) -> list[str]:
@@ -392,12 +396,12 @@ class RunJob(submitit.helpers.Checkpointable):
             if _STOP.is_set():
                 return "interrupted"
             command = run.command(run_dir, cuda)
-            resume = resume_args(run_dir)
+            resume = resume_args(run_dir, run.method)
             slurm_job = os.environ.get("SLURM_ARRAY_JOB_ID", os.environ.get("SLURM_JOB_ID"))
             if slurm_job and "SLURM_ARRAY_TASK_ID" in os.environ:
                 slurm_job += "_" + os.environ["SLURM_ARRAY_TASK_ID"]
             where = {"host": socket.gethostname(), **({"slurm_job": slurm_job} if slurm_job else {})}
-            write_status(run_dir, run, command, "running", resumed=bool(resume), **where)
+            write_status(run_dir, run, command, "running", resumed="--resume" in resume, **where)
             start = time.time()
             with open(os.path.join(run_dir, "stdout.log"), "a") as log:
                 # pass_fds: the script shares the lock (see lock_run)
@@ -417,13 +421,13 @@ class RunJob(submitit.helpers.Checkpointable):
                 except BaseException:  # SLURM requeue (SystemExit from submitit's signal handler) or Ctrl-C
                     self.stop()
                     raise
-            # a script ended by SIGTERM/SIGINT was stopped from outside (a session's end signals the scripts and the
+            # a script ended by SIGTERM/SIGINT was stopped from outside (a shutdown signals the scripts and the
             # launcher together, so _STOP may not be set yet): it resumes from its checkpoint, it did not fail
-            stopped = _STOP.is_set() or returncode in (-signal.SIGTERM, -signal.SIGINT)
+            stopped = _STOP.is_set() or returncode in (-signal.SIGTERM, -signal.SIGINT, 128 + signal.SIGTERM, 128 + signal.SIGINT)
             status = "interrupted" if stopped else "done" if returncode == 0 else "failed"
             if status == "done":
                 measure_checkpoint(run_dir, run.method, env)
-            write_status(run_dir, run, command, status, resumed=bool(resume), returncode=returncode,
+            write_status(run_dir, run, command, status, resumed="--resume" in resume, returncode=returncode,
                          seconds=round(time.time() - start, 1), **where)
             if status == "done" and self.archive:
                 try:
@@ -508,9 +512,9 @@ def pending_runs(runs: list[Run], root: str, cuda: bool = False, archive: str | 
             lost = " (archived without its weights: delete it from the archive to retrain it)" if is_archived(archive, run.needs) else ""
             print(f"wait (needs {run.needs} done){lost} {run.name}")
             continue
-        resume = resume_args(run_dir)
-        print(("resume " if resume else "run    ") + shlex.join(command + resume))
-        pending.append((run, run_dir, bool(resume)))
+        resume = resume_args(run_dir, run.method)
+        print(("resume " if "--resume" in resume else "run    ") + shlex.join(command + resume))
+        pending.append((run, run_dir, "--resume" in resume))
     # evaluation-only runs whose checkpoint is ready start first: short, and they say whether the trained runs use
     # their context while the long queue goes on; then interrupted runs, so that a restart finishes what it cut
     # before it opens new runs (stable: the recipes' order otherwise)

@@ -12,6 +12,7 @@ import claw_tdmpc2 as claw
 from diagnostics import context_controls
 from common.context import collect_episodes
 from common.envs import make_env
+import common.evaluation as common_evaluation
 from common.evaluation import offline_adaptation
 from test_claw import tiny_args
 
@@ -128,7 +129,7 @@ def test_one_line_errors(checkpoint, tmp_path):
 def test_an_interrupted_run_goes_on_from_its_finished_arms_and_environments(checkpoint, tmp_path, monkeypatch):
     argv = [checkpoint, "--context-episodes", "1", "2", "--eval-episodes", "1", "--swap-offset", "2"]
     uninterrupted = context_controls.main([*argv, "--progress", str(tmp_path / "whole")])
-    calls, offline = [], claw.offline_adaptation
+    calls, offline = [], common_evaluation.offline_adaptation
 
     def killed_in_the_second_arm(*args, **kwargs):  # arm 1 runs environments 0-5, arm 2 is killed in environment 2
         calls.append(1)
@@ -136,15 +137,15 @@ def test_an_interrupted_run_goes_on_from_its_finished_arms_and_environments(chec
             raise KeyboardInterrupt
         return offline(*args, **kwargs)
 
-    monkeypatch.setattr(claw, "offline_adaptation", killed_in_the_second_arm)
+    monkeypatch.setattr(common_evaluation, "offline_adaptation", killed_in_the_second_arm)
     json_path = tmp_path / "c.json"
     with pytest.raises(KeyboardInterrupt):
         context_controls.main([*argv, "--json", str(json_path)])
     assert os.path.exists(f"{json_path}.arms.pt") and not json_path.exists()
     assert [name.split("-", 2)[2] for name in os.listdir(tmp_path) if name.startswith("c.json.arm-")] == ["1-2-0.pt"]
-    monkeypatch.setattr(claw, "offline_adaptation", offline)
+    monkeypatch.setattr(common_evaluation, "offline_adaptation", offline)
     calls.clear()
-    monkeypatch.setattr(claw, "offline_adaptation", lambda *a, **k: calls.append(1) or offline(*a, **k))
+    monkeypatch.setattr(common_evaluation, "offline_adaptation", lambda *a, **k: calls.append(1) or offline(*a, **k))
     resumed = context_controls.main([*argv, "--json", str(json_path)])
     assert resumed == uninterrupted
     assert len(calls) == (N_ENVS - 2) + N_ENVS  # the rest of arm 2, then the 2-episode arm; arm 1 not rerun
@@ -156,7 +157,7 @@ def test_an_arm_interrupted_under_other_settings_is_not_taken_up(checkpoint, tmp
     reuse the first run's finished environments, whose episodes were averaged over another count."""
     argv = [checkpoint, "--context-episodes", "1", "--swap-offset", "2"]
     expected = context_controls.main([*argv, "--eval-episodes", "2", "--progress", str(tmp_path / "whole")])
-    calls, offline = [], claw.offline_adaptation
+    calls, offline = [], common_evaluation.offline_adaptation
 
     def killed_in_environment_3(*args, **kwargs):
         calls.append(1)
@@ -164,13 +165,13 @@ def test_an_arm_interrupted_under_other_settings_is_not_taken_up(checkpoint, tmp
             raise KeyboardInterrupt
         return offline(*args, **kwargs)
 
-    monkeypatch.setattr(claw, "offline_adaptation", killed_in_environment_3)
+    monkeypatch.setattr(common_evaluation, "offline_adaptation", killed_in_environment_3)
     json_path = tmp_path / "c.json"
     with pytest.raises(KeyboardInterrupt):
         context_controls.main([*argv, "--eval-episodes", "1", "--json", str(json_path)])
     assert not os.path.exists(f"{json_path}.arms.pt") and any(name.startswith("c.json.arm-") for name in os.listdir(tmp_path))
     calls.clear()
-    monkeypatch.setattr(claw, "offline_adaptation", lambda *a, **k: calls.append(1) or offline(*a, **k))
+    monkeypatch.setattr(common_evaluation, "offline_adaptation", lambda *a, **k: calls.append(1) or offline(*a, **k))
     assert context_controls.main([*argv, "--eval-episodes", "2", "--json", str(json_path)]) == expected
     assert len(calls) == 2 * N_ENVS  # own and swapped arms, every environment run again
     assert sorted(os.listdir(tmp_path)) == ["c.json"]

@@ -72,7 +72,7 @@ def test_sections_in_order_method_before_plumbing(script):
     assert names.index("Networks") < names.index("MPPI planner"), names
     assert all(names.index("Networks") < names.index(n) < names.index("MPPI planner") for n in names if n not in ORDER), (
         f"{script}_tdmpc2.py: the method's own sections belong between Networks and the planner: {names}")
-    assert script_text(script).rstrip().endswith('main(tyro.cli(Args))'), "the script ends with its entry point"
+    assert script_text(script).rstrip().endswith('main(tyro.cli(Args), typed=typed_flags(sys.argv[1:]))'), "the script ends with its entry point"
 
 
 def test_a_drifted_copy_is_named(monkeypatch):
