@@ -116,12 +116,15 @@ SCALES = {
     },
     "learn": {
         "seeds": (1, 2, 3),
-        "exp12_families": ("reach", "walker"),
+        "exp12_families": ("reach", "walker", "go1", "push"),
         "exp12_size": "F", "exp12_rank": 16,
         "common": ["--compile", "on", "--log-every", "1000", "--checkpoint-every", "5000"],
         "exp12": ["--offline-adapt-steps", "0", "1", "10", "100", "1000"],
         "exp12_family": {"reach": ["--total-timesteps", "50000", "--online-eval-steps", "2000"],
-                         "walker": ["--total-timesteps", "50000", "--online-eval-steps", "1000", "--eval-episodes", "2"]},
+                         "walker": ["--total-timesteps", "50000", "--online-eval-steps", "1000", "--eval-episodes", "2"],
+                         # budgets from experiment budget: ST's success / return clearly above random in both seeds
+                         "push": ["--total-timesteps", "100000", "--online-eval-steps", "2000"],
+                         "go1": ["--total-timesteps", "70000", "--online-eval-steps", "3000", "--eval-episodes", "2"]},
         "budget": ["--no-evaluate-after-training"], "budget_seeds": (1, 2),
         # family -> (ST's training environments, agent steps): Cheetah/Walker each embodiment; Push one goal, Go1 forward
         "budget_families": {"cheetah_walker": ((0, 1), 40000), "push": ((0,), 100000), "go1": ((0,), 100000)},
@@ -131,7 +134,9 @@ SCALES = {
         "controls": ["--context-episodes", "1", "3", "10", "--compile", "on"],
         "controls_family": {"reach": ["--eval-episodes", "10", "--online-eval-steps", "2000"],
                             # strengths are sorted: offset 10 of 20 swaps in a strength ~0.5 away, not a neighbour 0.05 away
-                            "walker": ["--eval-episodes", "2", "--online-eval-steps", "1000", "--swap-offset", "10"]},
+                            "walker": ["--eval-episodes", "2", "--online-eval-steps", "1000", "--swap-offset", "10"],
+                            "push": ["--eval-episodes", "10", "--online-eval-steps", "2000"],
+                            "go1": ["--eval-episodes", "2", "--online-eval-steps", "3000"]},
     },
     "smoke": {
         "seeds": (1, 2),
