@@ -373,7 +373,8 @@ def test_carried_runs_outlive_their_machine_and_archived_weights_feed_the_contro
 
 def test_controls_recipe_evaluates_the_exp12_claw_checkpoints_once_they_are_done(tmp_path, capsys):
     controls = sweep.recipe("controls", "learn")
-    assert sorted((r.family, r.seed) for r in controls) == [(f, s) for f in ("reach", "walker") for s in (1, 2, 3)]
+    families = ("go1", "push", "reach", "walker")
+    assert sorted((r.family, r.seed) for r in controls) == [(f, s) for f in families for s in (1, 2, 3)]
     for run in controls:
         trained = sweep.Run("claw", run.family, "F", 16, run.seed)
         run_dir = tmp_path / run.name
@@ -381,7 +382,7 @@ def test_controls_recipe_evaluates_the_exp12_claw_checkpoints_once_they_are_done
         assert run.needs == trained.name and command[1].endswith("diagnostics/context_controls.py")
         assert command[2] == str(tmp_path / trained.name / "checkpoint.pt")
         assert command[-4:] == ["--json", str(run_dir / "controls.json"), "--out", str(run_dir / "controls.md")]
-        assert command[command.index("--eval-episodes") + 1] == {"reach": "10", "walker": "2"}[run.family]
+        assert command[command.index("--eval-episodes") + 1] == {"reach": "10", "walker": "2", "push": "10", "go1": "2"}[run.family]
         if run.family == "walker":  # a distant strength, not the neighbouring one
             assert command[command.index("--swap-offset") + 1] == "10"
         assert "--compile" in command and "--seed" not in command and "--no-cuda" not in command  # the checkpoint's own
@@ -465,7 +466,9 @@ def test_learn_recipes_and_budget_training_curves(monkeypatch):
     steps = {r.family: r.extra[r.extra.index("--total-timesteps") + 1] for r in budget}
     assert steps == {"cheetah_walker": "40000", "push": "100000", "go1": "100000"}
     exp12 = sweep.plan_runs(["exp1", "exp2"], "learn")
-    assert {(r.family, r.size) for r in exp12} == {("reach", "F"), ("walker", "F")} and len(exp12) == 2 * 4 * 3
+    assert {(r.family, r.size) for r in exp12} == {(f, "F") for f in ("reach", "walker", "go1", "push")} and len(exp12) == 4 * 4 * 3
+    exp12_steps = {r.family: r.extra[r.extra.index("--total-timesteps") + 1] for r in exp12 if "--total-timesteps" in r.extra}
+    assert exp12_steps["push"] == "100000" and exp12_steps["go1"] == "70000"  # the budgets the curves chose
     decoder_and_controls = sweep.plan_runs(["decoder"], "learn")  # Exp 1/2's CLAW runs with --decoder-coef, named apart
     decoder = [r for r in decoder_and_controls if r.method == "claw_decoder"]
     controls = sweep.plan_runs(["controls"], "learn")
