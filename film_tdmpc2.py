@@ -14,6 +14,7 @@ Every step count (--total-timesteps, --seed-steps, --online-eval-steps, global_s
 steps, i.e. planner calls; with action repeat 2 that is half the simulator steps. Read top to bottom: Args,
 math, networks, the method's own parts, planner, buffers, update, evaluation, main; the plumbing comes last.
 """
+
 from __future__ import annotations
 
 import copy
@@ -256,7 +257,8 @@ class MLP(nn.Module):
         self.num_normed = len(dims) - 1 if simnorm_out else len(dims) - 2
         lead = (ensemble,) if ensemble else ()
         self.weights = nn.ParameterList(
-            nn.Parameter(nn.init.trunc_normal_(torch.empty(*lead, d_out, d_in), std=0.02)) for d_in, d_out in zip(dims[:-1], dims[1:])
+            nn.Parameter(nn.init.trunc_normal_(torch.empty(*lead, d_out, d_in), std=0.02))
+            for d_in, d_out in zip(dims[:-1], dims[1:])
         )
         # ensemble biases/norm params carry a broadcast dim so they add onto [E, N, d_out]
         bias_shape = lambda d: (ensemble, 1, d) if ensemble else (d,)  # noqa: E731
@@ -387,7 +389,10 @@ def adapted_weights(model: WorldModel, phi, layout) -> dict:
         if name == "qs":
             _, norm_weights, norm_biases = weights["target_qs"]
             gamma, beta = gamma.detach(), beta.detach()
-            norm_weights[layer], norm_biases[layer] = norm_weights[layer] * (1 + gamma), norm_biases[layer] * (1 + gamma) + beta
+            norm_weights[layer], norm_biases[layer] = (
+                norm_weights[layer] * (1 + gamma),
+                norm_biases[layer] * (1 + gamma) + beta,
+            )
     return weights
 
 
@@ -408,7 +413,9 @@ class ContextEncoder(nn.Module):
         self.embed = nn.Sequential(hidden_mlp(transition_dim, args.embed_hidden, args.embed_hidden), nn.Mish())
         self.context = hidden_mlp(args.embed_hidden, args.embed_hidden, args.context_dim)
         # --decoder-coef: r from (s, a, s') and u_con; only u_con tells the environments' rewards apart
-        self.reward_decoder = hidden_mlp(transition_dim + args.context_dim, args.embed_hidden, 1) if args.decoder_coef > 0 else None
+        self.reward_decoder = (
+            hidden_mlp(transition_dim + args.context_dim, args.embed_hidden, 1) if args.decoder_coef > 0 else None
+        )
 
     def set_statistics(self, transitions):
         """Fix the per-feature standardisation; constant features (std ~0) are only centred."""
@@ -436,9 +443,9 @@ class Hypernet(nn.Module):
         num_chunks = math.ceil(self.num_params / args.chunk_size)
         self.encoder = ContextEncoder(transition_dim, args)
         self.chunk_embeddings = nn.Parameter(torch.randn(num_chunks, args.chunk_embed_dim))
+        d_in, hidden = args.context_dim + args.chunk_embed_dim, args.generator_hidden
         self.generator = nn.Sequential(
-            hidden_mlp(args.context_dim + args.chunk_embed_dim, args.generator_hidden, args.generator_hidden),
-            nn.LayerNorm(args.generator_hidden), nn.Mish(), nn.Linear(args.generator_hidden, args.chunk_size),
+            hidden_mlp(d_in, hidden, hidden), nn.LayerNorm(hidden), nn.Mish(), nn.Linear(hidden, args.chunk_size)
         )
         nn.init.zeros_(self.generator[-1].weight)  # delta phi = 0 at init: adapters start as the template
         nn.init.zeros_(self.generator[-1].bias)
@@ -491,7 +498,9 @@ def plan(model: WorldModel, weights, obs, prev_mean, discount: float, args: Args
         elite_actions = actions[:, elite_idxs]
         score = torch.softmax(args.temperature * elite_value, 0)
         mean = (score.view(1, -1, 1) * elite_actions).sum(1)
-        std = (score.view(1, -1, 1) * (elite_actions - mean.unsqueeze(1)).pow(2)).sum(1).sqrt().clamp(args.min_std, args.max_std)
+        std = (
+            (score.view(1, -1, 1) * (elite_actions - mean.unsqueeze(1)).pow(2)).sum(1).sqrt().clamp(args.min_std, args.max_std)
+        )
     action = elite_actions[0, torch.multinomial(score, 1)[0]]
     if explore:
         action = action + std[0] * torch.randn(act_dim, device=device)
@@ -548,8 +557,14 @@ class ReplayBuffer:
                 self.starts[env_id] = torch.cat([self.starts[env_id], torch.tensor(self.pending[env_id])])
                 self.pending[env_id] = []
         n = self.size
-        return {"obs": self.obs[:n].cpu(), "next_obs": self.next_obs[:n].cpu(), "action": self.action[:n].cpu(),
-                "reward": self.reward[:n].cpu(), "starts": self.starts, "size": n}
+        return {
+            "obs": self.obs[:n].cpu(),
+            "next_obs": self.next_obs[:n].cpu(),
+            "action": self.action[:n].cpu(),
+            "reward": self.reward[:n].cpu(),
+            "starts": self.starts,
+            "size": n,
+        }
 
     def load_state_dict(self, state: dict):
         n = self.size = state["size"]
@@ -620,7 +635,11 @@ def world_model_loss(model: WorldModel, weights, obs, action, reward, discount: 
     reward_loss = (reward_ce * rho).mean()
     value_loss = (value_ce * rho).mean() / model.num_q
     loss = args.consistency_coef * consistency + args.reward_coef * reward_loss + args.value_coef * value_loss
-    return loss, zs, {"consistency_loss": consistency.detach(), "reward_loss": reward_loss.detach(), "value_loss": value_loss.detach()}
+    return (
+        loss,
+        zs,
+        {"consistency_loss": consistency.detach(), "reward_loss": reward_loss.detach(), "value_loss": value_loss.detach()},
+    )
 
 
 def policy_loss(model: WorldModel, weights, zs, scale: RunningScale, args: Args):
@@ -670,10 +689,13 @@ def update(model, hypernet, optimizers, scale, layout, n_wm, obs, action, reward
 
 
 def make_optimizers(model: WorldModel, hypernet: nn.Module, args: Args):
-    wm_optimizer = torch.optim.Adam([
-        {"params": model.encoder.parameters(), "lr": args.learning_rate * args.encoder_lr_scale},
-        {"params": [*model.dynamics.parameters(), *model.reward.parameters(), *model.qs.parameters()]},
-    ], lr=args.learning_rate)
+    wm_optimizer = torch.optim.Adam(
+        [
+            {"params": model.encoder.parameters(), "lr": args.learning_rate * args.encoder_lr_scale},
+            {"params": [*model.dynamics.parameters(), *model.reward.parameters(), *model.qs.parameters()]},
+        ],
+        lr=args.learning_rate,
+    )
     pi_optimizer = torch.optim.Adam(model.policy.parameters(), lr=args.learning_rate, eps=1e-5)
     hyper_optimizer = torch.optim.Adam(hypernet.parameters(), lr=args.hypernet_lr)
     return wm_optimizer, pi_optimizer, hyper_optimizer
@@ -692,10 +714,21 @@ def evaluate(model, hypernet, layout, discount, writer, device, args: Args, prog
 
     def act(obs, first_step):
         obs = torch.as_tensor(obs, dtype=torch.float32, device=device)
-        action, current["mean"] = plan(model, current["weights"], obs, None if first_step else current["mean"], discount, args, explore=False)
+        action, current["mean"] = plan(
+            model, current["weights"], obs, None if first_step else current["mean"], discount, args, explore=False
+        )
         return action.cpu().numpy()
 
-    return evaluate_family(range(num_envs(args.family)), adapt, act, writer, args, progress_path=progress_path, after_each_env=lambda: stop_if_interrupted(progress_path and os.path.dirname(progress_path)), weights=weights_digest(model, hypernet))
+    return evaluate_family(
+        range(num_envs(args.family)),
+        adapt,
+        act,
+        writer,
+        args,
+        progress_path=progress_path,
+        after_each_env=lambda: stop_if_interrupted(progress_path and os.path.dirname(progress_path)),
+        weights=weights_digest(model, hypernet),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -707,10 +740,21 @@ def main(args: Args, typed: set | None = None):
     purge_step = None
     if args.resume or args.eval_only:  # the checkpoint's arguments; a flag given explicitly with another value is an error
         saved = read_checkpoint(args.resume or args.checkpoint)
-        architecture = ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic", "context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim", "decoder_coef")
-        free = RESUME_FREE + (() if args.resume else EVALUATION_FLAGS)  # --eval-only: the run's own evaluation unless given anew
-        adopt_args(args, saved["args"], None if args.resume else architecture + EVALUATION_FLAGS, args.resume or args.checkpoint, typed, free)
-        purge_step, saved = saved["global_step"] + 1 if args.resume else None, None  # checkpoints are large: keep only the step
+        # flags that shape the saved weights: the shared ones, then the method's own
+        architecture = ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic")
+        architecture += ("context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim", "decoder_coef")
+        # --eval-only: the run's own evaluation unless given anew
+        free = RESUME_FREE + (() if args.resume else EVALUATION_FLAGS)
+        adopt_args(
+            args,
+            saved["args"],
+            None if args.resume else architecture + EVALUATION_FLAGS,
+            args.resume or args.checkpoint,
+            typed,
+            free,
+        )
+        # checkpoints are large: keep only the step
+        purge_step, saved = (saved["global_step"] + 1 if args.resume else None, None)
     total_timesteps, seed_steps, prefill = validate_args(args)
     random.seed(args.seed)
     np.random.seed(args.seed)
@@ -721,7 +765,8 @@ def main(args: Args, typed: set | None = None):
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.compile == "auto":  # measured break-even: README "Speed"
         args.compile = "on" if total_timesteps >= 10_000 else "off"
-    if args.compile == "on":  # rebinds the module's hot functions: every call below, evaluation included, takes the compiled ones
+    # rebinds the module's hot functions: every call below, evaluation included, takes the compiled ones
+    if args.compile == "on":
         global update, plan
         update, plan = compiled(update, device, cuda_graphs=False), compiled(plan, device)
 
@@ -741,11 +786,15 @@ def main(args: Args, typed: set | None = None):
     if args.dry_run:
         return
     print(describe_device(args, device))
-    if args.capture_video and (problem := render_problem(args.family)):  # one line at the start, not a traceback at the first video
+    # one line at the start, not a traceback at the first video
+    if args.capture_video and (problem := render_problem(args.family)):
         print(f"warning: --capture-video records nothing: {problem}", flush=True)
         args.capture_video = False
     if not args.eval_only:
-        print(f"budget: {total_timesteps} agent steps: a {prefill}-step random prefill, {args.burst_updates} burst updates, then training", flush=True)
+        print(
+            f"budget: {total_timesteps} agent steps: a {prefill}-step random prefill, {args.burst_updates} burst updates, then training",
+            flush=True,
+        )
 
     if args.resume and args.run_dir is None:  # keep logging into the interrupted run
         args.run_dir = os.path.dirname(os.path.abspath(args.resume))
@@ -754,10 +803,19 @@ def main(args: Args, typed: set | None = None):
     if args.track:  # before the SummaryWriter, whose scalars W&B mirrors (sync_tensorboard)
         import wandb
 
-        wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, sync_tensorboard=True, config=vars(args),
-                   name=os.path.basename(os.path.abspath(run_dir)), save_code=True)
+        wandb.init(
+            project=args.wandb_project_name,
+            entity=args.wandb_entity,
+            sync_tensorboard=True,
+            config=vars(args),
+            name=os.path.basename(os.path.abspath(run_dir)),
+            save_code=True,
+        )
     writer = SummaryWriter(run_dir, purge_step=purge_step)  # a resumed run replaces the events logged after its checkpoint
-    writer.add_text("hyperparameters", hyperparameter_text(args, total_timesteps=total_timesteps, seed_steps=seed_steps, discount=discount, device=device))
+    writer.add_text(
+        "hyperparameters",
+        hyperparameter_text(args, total_timesteps=total_timesteps, seed_steps=seed_steps, discount=discount, device=device),
+    )
     scale = RunningScale(args.tau, device)
     if args.eval_only:
         print(describe_evaluation(args), flush=True)
@@ -779,7 +837,8 @@ def main(args: Args, typed: set | None = None):
         saved_at, saved_step = time.time(), global_step
         stop_if_interrupted(run_dir, global_step)
 
-    pool = ContextPool([make_env(args.family, env_id, seed=args.seed + 200 + env_id) for env_id in range(n_envs)], args, device)
+    context_envs = [make_env(args.family, env_id, seed=args.seed + 200 + env_id) for env_id in range(n_envs)]
+    pool = ContextPool(context_envs, args, device)
     if args.resume:
         state = load_checkpoint(args.resume, model, hypernet, optimizers, scale, replay, restore_rng=True)
         pool.episodes, pool.collected = [[e.to(device) for e in p] for p in state["contexts"][0]], state["contexts"][1]
@@ -795,14 +854,15 @@ def main(args: Args, typed: set | None = None):
         print(f"prefilled {global_step} steps; {burst_left} burst updates", flush=True)
         for _ in progress_bar(range(burst_left), desc="burst"):
             k = random.randrange(n_envs)
-            info = update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(k, args.batch_size),
-                   pool.sample(k), discount, args)
+            batch = replay.sample(k, args.batch_size)
+            info = update(model, hypernet, optimizers, scale, layout, n_wm, *batch, pool.sample(k), discount, args)
             stop_if_diverged(info, global_step, checkpoint_path)
         burst_left = 0
         save()
 
-    first = True  # an episode starts at the top of the loop, also where a resumed run continues
-    start_time, start_step, recent = time.time(), global_step, deque(maxlen=10)  # recent: (return, success) of the last episodes
+    first, prev_mean = True, None  # an episode starts at the top of the loop, also where a resumed run continues
+    # recent: (return, success) of the last episodes
+    start_time, start_step, recent = (time.time(), global_step, deque(maxlen=10))
     while global_step < total_timesteps:
         if first:  # a new episode in a rollout environment drawn per episode
             rollout_env = random.randrange(n_envs)
@@ -812,14 +872,21 @@ def main(args: Args, typed: set | None = None):
         # ALGO LOGIC: the method's update, then plan and act
         # update the base and hypernet on a training environment sampled per step
         k = random.randrange(n_envs)
-        info = update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(k, args.batch_size),
-                      pool.sample(k), discount, args)
+        batch = replay.sample(k, args.batch_size)
+        info = update(model, hypernet, optimizers, scale, layout, n_wm, *batch, pool.sample(k), discount, args)
         stop_if_diverged(info, global_step, checkpoint_path)
         # plan and act in the rollout environment with its freshly generated adapters
         with torch.no_grad():
             weights = adapted_weights(model, hypernet(rollout_context), layout)
-        action, prev_mean = plan(model, weights, torch.as_tensor(obs, dtype=torch.float32, device=device),
-                                 None if first else prev_mean, discount, args, explore=True)
+        action, prev_mean = plan(
+            model,
+            weights,
+            torch.as_tensor(obs, dtype=torch.float32, device=device),
+            None if first else prev_mean,
+            discount,
+            args,
+            explore=True,
+        )
         action = action.cpu().numpy()
         # TRY NOT TO MODIFY: step the environment, record the transition, log and checkpoint
         next_obs, reward, terminated, truncated, step_info = envs[rollout_env].step(action)
@@ -839,15 +906,23 @@ def main(args: Args, typed: set | None = None):
                 writer.add_scalar(f"losses/{key}", value.item(), global_step)
             writer.add_scalar("charts/q_scale", float(scale.value), global_step)
             writer.add_scalar("charts/SPS", sps, global_step)
-            print(f"step {global_step}/{total_timesteps} | wm_loss {float(info['wm_loss']):.3f} | "
-                  f"adapter_norm {float(info['adapter_norm']):.3f} | {progress_text(global_step, total_timesteps, start_step, start_time, started, recent, args.family)}", flush=True)
+            print(
+                f"step {global_step}/{total_timesteps} | wm_loss {float(info['wm_loss']):.3f} | "
+                f"adapter_norm {float(info['adapter_norm']):.3f} | {progress_text(global_step, total_timesteps, start_step, start_time, started, recent, args.family)}",
+                flush=True,
+            )
             writer.flush()
-        if first and (global_step // args.checkpoint_every > saved_step // args.checkpoint_every or time.time() - saved_at > 60 * args.checkpoint_minutes or STOP_SIGNAL):
+        if first and (
+            global_step // args.checkpoint_every > saved_step // args.checkpoint_every
+            or time.time() - saved_at > 60 * args.checkpoint_minutes
+            or STOP_SIGNAL
+        ):
             save()  # deferred to an episode's end: a resumed run then starts the next episode as this run does
     save()
     print(f"saved {checkpoint_path}", flush=True)
     if args.evaluate_after_training:
-        evaluate(model, hypernet, layout, discount, writer, device, args, progress_path=os.path.join(run_dir, "evaluation_progress.pt"))
+        progress_path = os.path.join(run_dir, "evaluation_progress.pt")  # resumes an interrupted evaluation
+        evaluate(model, hypernet, layout, discount, writer, device, args, progress_path=progress_path)
     writer.close()
     if args.track:
         wandb.finish()
@@ -860,23 +935,46 @@ def validate_args(args: Args) -> tuple[int, int, int]:
     if args.family not in FAMILIES:
         raise SystemExit(f"error: unknown family {args.family!r}; valid families: {', '.join(FAMILIES)}")
     if not 0 < args.num_elites <= args.num_samples or not 0 <= args.num_pi_trajs < args.num_samples:
-        raise SystemExit("error: need 0 < --num-elites <= --num-samples and 0 <= --num-pi-trajs < --num-samples, got "
-                         f"{args.num_elites}, {args.num_samples}, {args.num_pi_trajs}")
+        raise SystemExit(
+            "error: need 0 < --num-elites <= --num-samples and 0 <= --num-pi-trajs < --num-samples, got "
+            f"{args.num_elites}, {args.num_samples}, {args.num_pi_trajs}"
+        )
     for name in ("checkpoint", "resume"):
         path = getattr(args, name)
         if path is not None and not os.path.isfile(path):
             raise SystemExit(f"error: --{name} {path!r} does not exist")
     if not 1 <= args.context_episodes <= args.context_pool_episodes or args.context_refresh_every < 0:
-        raise SystemExit(f"error: need 1 <= --context-episodes ({args.context_episodes}) <= --context-pool-episodes ({args.context_pool_episodes}) and --context-refresh-every >= 0")
+        pool = f"--context-episodes ({args.context_episodes}) <= --context-pool-episodes ({args.context_pool_episodes})"
+        raise SystemExit(f"error: need 1 <= {pool} and --context-refresh-every >= 0")
     if args.eval_only and args.checkpoint is None:
         raise SystemExit("error: --eval-only needs --checkpoint PATH")
     if args.checkpoint is not None and not args.eval_only:
         raise SystemExit("error: --checkpoint is read by --eval-only only; to continue training a run use --resume PATH")
     if args.eval_only and args.resume:
         raise SystemExit("error: --eval-only and --resume exclude each other")
-    check_counts(args, ("total_timesteps", "batch_size", "horizon", "iterations", "num_samples", "log_every", "checkpoint_every",
-                        "checkpoint_minutes", "threads", "rank", "context_episodes", "eval_episodes", "context_dim", "embed_hidden",
-                        "generator_hidden", "chunk_size", "chunk_embed_dim"), ("online_eval_steps", "burst_updates", "seed_steps", "decoder_coef"))
+    check_counts(
+        args,
+        (
+            "total_timesteps",
+            "batch_size",
+            "horizon",
+            "iterations",
+            "num_samples",
+            "log_every",
+            "checkpoint_every",
+            "checkpoint_minutes",
+            "threads",
+            "rank",
+            "context_episodes",
+            "eval_episodes",
+            "context_dim",
+            "embed_hidden",
+            "generator_hidden",
+            "chunk_size",
+            "chunk_embed_dim",
+        ),
+        ("online_eval_steps", "burst_updates", "seed_steps", "decoder_coef"),
+    )
     if args.num_bins < 2 or args.vmin >= args.vmax:
         raise SystemExit(f"error: need --num-bins >= 2 and --vmin < --vmax, got {args.num_bins}, {args.vmin}, {args.vmax}")
     check_ranges(args)
@@ -897,13 +995,24 @@ def default_discount(args: Args, episode_length: int) -> float:
 # Run plumbing: checked checkpoints, the resume contract, compile rebinding, progress
 # ---------------------------------------------------------------------------------------------
 # flags that cannot change a run's results: --resume takes them anew if given, else from the checkpoint
-RESUME_FREE = ("threads", "cuda", "compile", "log_every", "checkpoint_every", "checkpoint_minutes", "track", "wandb_project_name", "wandb_entity",
-               "capture_video")
+RESUME_FREE = (
+    "threads",
+    "cuda",
+    "compile",
+    "log_every",
+    "checkpoint_every",
+    "checkpoint_minutes",
+    "track",
+    "wandb_project_name",
+    "wandb_entity",
+    "capture_video",
+)
 NOT_SAVED = ("run_dir", "resume", "checkpoint", "eval_only", "dry_run", "overwrite")  # this invocation's own
 
 
 def flag(key: str) -> str:
     return "--" + key.replace("_", "-")
+
 
 # numeric flags' valid ranges, checked before any work (flags a script lacks are skipped): flag -> (test, range in words)
 MAX_SEED = 2**32 - 1 - 100_000  # NumPy takes seeds up to 2**32 - 1, and the environments' seeds add up to 50,000 + env id
@@ -926,8 +1035,19 @@ RANGES = {
     "decoder_coef": (lambda v: v >= 0, ">= 0"),
 }
 # flags an --eval-only run takes from the checkpoint unless given anew: how the run was evaluated and planned
-EVALUATION_FLAGS = ("context_episodes", "online_eval_steps", "offline_adapt_steps", "eval_episodes", "iterations", "num_samples",
-                    "num_pi_trajs", "num_elites", "temperature", "min_std", "max_std")
+EVALUATION_FLAGS = (
+    "context_episodes",
+    "online_eval_steps",
+    "offline_adapt_steps",
+    "eval_episodes",
+    "iterations",
+    "num_samples",
+    "num_pi_trajs",
+    "num_elites",
+    "temperature",
+    "min_std",
+    "max_std",
+)
 
 
 def check_ranges(args: Args):
@@ -942,13 +1062,17 @@ def check_ranges(args: Args):
     if args.min_std > args.max_std:
         raise SystemExit(f"error: need --min-std <= --max-std, got {args.min_std} > {args.max_std}")
     if not 0 < args.horizon < episode_length(args.family):
-        raise SystemExit(f"error: --horizon must be in 1..{episode_length(args.family) - 1} (below {args.family}'s episode "
-                         f"length), got {args.horizon}")
+        raise SystemExit(
+            f"error: --horizon must be in 1..{episode_length(args.family) - 1} (below {args.family}'s episode "
+            f"length), got {args.horizon}"
+        )
     encoder_hidden, _, mlp_hidden, _ = MODEL_SIZES[args.model_size]
     narrowest = min([*encoder_hidden, mlp_hidden])
     if hasattr(args, "rank") and not 1 <= args.rank <= narrowest:
-        raise SystemExit(f"error: --rank must be in 1..{narrowest} (the narrowest adapted layer of model size "
-                         f"{args.model_size}), got {args.rank}")
+        raise SystemExit(
+            f"error: --rank must be in 1..{narrowest} (the narrowest adapted layer of model size "
+            f"{args.model_size}), got {args.rank}"
+        )
 
 
 def typed_flags(argv: list[str]) -> set[str]:
@@ -961,9 +1085,11 @@ def typed_flags(argv: list[str]) -> set[str]:
 def describe_evaluation(args: Args) -> str:
     """What an evaluation will run, in one line, with the flags that shorten it."""
     sweep = f", the Exp 2 sweep {list(args.offline_adapt_steps)} adapter steps" if hasattr(args, "offline_adapt_steps") else ""
-    return (f"evaluation per test environment: Exp 1 {args.online_eval_steps} online agent steps, Exp 2 {args.eval_episodes} "
-            f"episodes{sweep}; planner {args.num_samples} samples x {args.iterations} iterations "
-            "(shorter: --online-eval-steps, --eval-episodes)")
+    return (
+        f"evaluation per test environment: Exp 1 {args.online_eval_steps} online agent steps, Exp 2 {args.eval_episodes} "
+        f"episodes{sweep}; planner {args.num_samples} samples x {args.iterations} iterations "
+        "(shorter: --online-eval-steps, --eval-episodes)"
+    )
 
 
 def check_run_dir(run_dir: str, args: Args):
@@ -971,7 +1097,11 @@ def check_run_dir(run_dir: str, args: Args):
     checkpoint would be overwritten and two runs' events mixed. --overwrite deletes them and starts over."""
     if args.resume or not os.path.isdir(run_dir):
         return
-    held = sorted(n for n in os.listdir(run_dir) if n in ("checkpoint.pt", "evaluation_progress.pt") or n.startswith("events.out.tfevents"))
+    held = sorted(
+        n
+        for n in os.listdir(run_dir)
+        if n in ("checkpoint.pt", "evaluation_progress.pt") or n.startswith("events.out.tfevents")
+    )
     if held and not args.overwrite:
         resume = f"continue it with --resume {os.path.join(run_dir, 'checkpoint.pt')}, " if "checkpoint.pt" in held else ""
         raise SystemExit(f"error: --run-dir {run_dir} already holds a run ({held[0]}); {resume}or start over with --overwrite")
@@ -991,7 +1121,9 @@ def stop_gracefully_on_signals():
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
         STOP_SIGNAL.append(signum)
-        print(f"{signal.Signals(signum).name}: saving at the next episode end, then stopping (again: stop at once)", flush=True)
+        print(
+            f"{signal.Signals(signum).name}: saving at the next episode end, then stopping (again: stop at once)", flush=True
+        )
 
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, handler)
@@ -1019,8 +1151,9 @@ def stop_if_diverged(info: dict, step: int, checkpoint_path: str | None):
         return
     key, value = next((k, v) for k, v in zip(watched, values) if not torch.isfinite(v))
     kept = f"; {checkpoint_path} holds the last finite weights" if checkpoint_path and os.path.exists(checkpoint_path) else ""
-    raise SystemExit(f"error: the run diverged at step {step}: {key} is {float(value)}{kept}; "
-                     "lower --learning-rate or --grad-clip-norm")
+    raise SystemExit(
+        f"error: the run diverged at step {step}: {key} is {float(value)}{kept}; lower --learning-rate or --grad-clip-norm"
+    )
 
 
 def atomic_save(state: dict, path: str):
@@ -1028,8 +1161,10 @@ def atomic_save(state: dict, path: str):
     ends the run with one line, the temporary file removed and the previous file intact; so do non-finite weights (a
     diverged run), so that the file on disk keeps the last finite ones."""
     if any(not bool(torch.isfinite(t).all()) for t in state.get("model", {}).values() if t.is_floating_point()):
-        raise SystemExit(f"error: the run diverged before step {state.get('global_step')}: its weights are not finite; "
-                         f"{path} keeps the last finite ones; lower --learning-rate or --grad-clip-norm")
+        raise SystemExit(
+            f"error: the run diverged before step {state.get('global_step')}: its weights are not finite; "
+            f"{path} keeps the last finite ones; lower --learning-rate or --grad-clip-norm"
+        )
     try:
         torch.save(state, path + ".tmp")
     except (OSError, RuntimeError) as error:  # a full disk: OSError, or RuntimeError ("unexpected pos") from the zip writer
@@ -1037,8 +1172,10 @@ def atomic_save(state: dict, path: str):
             os.remove(path + ".tmp")
         detail = str(error).splitlines()[0] if str(error) else type(error).__name__
         kept = "; the previous one is intact" if os.path.exists(path) else ""
-        raise SystemExit(f"error: cannot write {path} ({detail}; {shutil.disk_usage(os.path.dirname(os.path.abspath(path))).free // 2**20} MiB "
-                         f"free){kept}") from None
+        raise SystemExit(
+            f"error: cannot write {path} ({detail}; {shutil.disk_usage(os.path.dirname(os.path.abspath(path))).free // 2**20} MiB "
+            f"free){kept}"
+        ) from None
     os.replace(path + ".tmp", path)
 
 
@@ -1047,7 +1184,9 @@ def check_counts(args: Args, positive: tuple[str, ...], nonnegative: tuple[str, 
     for key in positive:
         value = getattr(args, key, None)
         if value is not None and value <= 0:
-            raise SystemExit(f"error: {flag(key)} must be a positive {'number' if isinstance(value, float) else 'integer'}, got {value}")
+            raise SystemExit(
+                f"error: {flag(key)} must be a positive {'number' if isinstance(value, float) else 'integer'}, got {value}"
+            )
     for key in nonnegative:
         value = getattr(args, key, None)
         if value is not None and value < 0:
@@ -1068,8 +1207,10 @@ def resolve_budget(args: Args, n_envs: int | None = None, envs_filled: int | Non
 
 def check_budget(budget: int, prefill: int, what: str = "--total-timesteps"):
     if budget <= prefill:
-        raise SystemExit(f"error: {what}: {budget} must exceed the random-action prefill of {prefill} steps "
-                         "(whole episodes, at least one per environment); raise it or lower --seed-steps")
+        raise SystemExit(
+            f"error: {what}: {budget} must exceed the random-action prefill of {prefill} steps "
+            "(whole episodes, at least one per environment); raise it or lower --seed-steps"
+        )
 
 
 def read_checkpoint(path: str, model=None) -> dict:
@@ -1097,7 +1238,10 @@ def read_checkpoint(path: str, model=None) -> dict:
 def mismatch(error: Exception) -> str:
     """The first informative line of a load_state_dict error (which lists every tensor)."""
     lines = [line.strip() for line in str(error).splitlines() if line.strip()]
-    return next((line for line in lines if "size mismatch" in line or "Missing" in line or "Unexpected" in line), lines[0] if lines else "")
+    return next(
+        (line for line in lines if "size mismatch" in line or "Missing" in line or "Unexpected" in line),
+        lines[0] if lines else "",
+    )
 
 
 def adopt_args(args: Args, saved: dict, keys, path: str, typed: set | None = None, free=RESUME_FREE):
@@ -1113,8 +1257,11 @@ def adopt_args(args: Args, saved: dict, keys, path: str, typed: set | None = Non
         if explicit and given != saved[key]:
             if key in free:
                 continue
-            raise SystemExit(f"error: {flag(key)} {given} conflicts with {saved[key]} in {path}; leave it out to use the checkpoint's")
+            raise SystemExit(
+                f"error: {flag(key)} {given} conflicts with {saved[key]} in {path}; leave it out to use the checkpoint's"
+            )
         setattr(args, key, saved[key])
+
 
 def compiled(fn, device: torch.device, cuda_graphs: bool = True):
     """--compile: torch.compile(fn), its compile time printed at the first call. On a GPU with cuda_graphs, CUDA graphs
@@ -1136,7 +1283,10 @@ def compiled(fn, device: torch.device, cuda_graphs: bool = True):
         out = compiled_fn(*args, **kwargs)
         if first_call[0]:
             first_call[0] = False
-            print(f"compiled {fn.__name__} in {time.time() - start:.0f} s (first call; new input kinds compile again)", flush=True)
+            print(
+                f"compiled {fn.__name__} in {time.time() - start:.0f} s (first call; new input kinds compile again)",
+                flush=True,
+            )
         return torch.utils._pytree.tree_map_only(torch.Tensor, torch.clone, out) if graphs else out
 
     call.is_compiled = True
@@ -1147,7 +1297,9 @@ def describe_device(args: Args, device: torch.device) -> str:
     """Start-up lines: the device, a warning when CUDA was asked for but is missing, a size hint."""
     lines = [f"device: {device}"]
     if args.cuda and device.type == "cpu":
-        lines.append("warning: --cuda was asked for but CUDA is not available; running on the CPU (slow; --no-cuda silences this)")
+        lines.append(
+            "warning: --cuda was asked for but CUDA is not available; running on the CPU (slow; --no-cuda silences this)"
+        )
     if device.type == "cpu" and args.model_size in ("A", "B"):
         lines.append(f"hint: model size {args.model_size} is slow on a CPU; --model-size F trains in a fraction of the time")
     return "\n".join(lines)
@@ -1156,7 +1308,9 @@ def describe_device(args: Args, device: torch.device) -> str:
 def git_commit() -> str:
     try:
         root = os.path.dirname(os.path.abspath(__file__))
-        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True).stdout.strip()
+        return subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
@@ -1209,10 +1363,17 @@ def random_prefill(envs: dict, replay, total: int) -> int:
 # ---------------------------------------------------------------------------------------------
 def save_checkpoint(path, global_step, burst_left, model, hypernet, optimizers, scale, replay, pool, args: Args, envs=()):
     state = {
-        "global_step": global_step, "burst_left": burst_left, "args": vars(args), "model": model.state_dict(), "hypernet": hypernet.state_dict(),
-        "optimizers": [opt.state_dict() for opt in optimizers], "scale": scale.value.cpu(),
-        "replay": replay.state_dict() if replay is not None else None, "contexts": (pool.episodes, pool.collected),
-        "method": os.path.basename(__file__), "dims": (model.obs_dim, model.act_dim),  # checked by read_checkpoint
+        "global_step": global_step,
+        "burst_left": burst_left,
+        "args": vars(args),
+        "model": model.state_dict(),
+        "hypernet": hypernet.state_dict(),
+        "optimizers": [opt.state_dict() for opt in optimizers],
+        "scale": scale.value.cpu(),
+        "replay": replay.state_dict() if replay is not None else None,
+        "contexts": (pool.episodes, pool.collected),
+        "method": os.path.basename(__file__),
+        "dims": (model.obs_dim, model.act_dim),  # checked by read_checkpoint
         "rng": {**global_rng_state(), "envs": [rng_state(env) for env in envs]},  # envs: the rollout environments' next resets
     }
     atomic_save(state, path)

@@ -32,8 +32,7 @@ def measure(family: str, steps: int, seed: int = 0) -> dict[str, float]:
             env.reset()
             resets += 1
     dt = time.perf_counter() - t0
-    return {"make_reset_s": t_make, "steps_per_s": steps / dt, "ms_per_step": 1e3 * dt / steps,
-            "resets": resets}
+    return {"make_reset_s": t_make, "steps_per_s": steps / dt, "ms_per_step": 1e3 * dt / steps, "resets": resets}
 
 
 def main() -> None:
@@ -44,8 +43,7 @@ def main() -> None:
     print(f"{'family':<16}{'agent steps/s':>14}{'ms/step':>10}{'resets':>8}{'make+reset s':>14}")
     for family in args.families:
         r = measure(family, args.steps)
-        print(f"{family:<16}{r['steps_per_s']:>14.0f}{r['ms_per_step']:>10.3f}{r['resets']:>8d}"
-              f"{r['make_reset_s']:>14.2f}")
+        print(f"{family:<16}{r['steps_per_s']:>14.0f}{r['ms_per_step']:>10.3f}{r['resets']:>8d}{r['make_reset_s']:>14.2f}")
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ Measures, with the real environment and the scripts' own functions (claw_tdmpc2 
 
 Usage: python benchmarks/speed.py [--sizes I F A] [--modes eager compiled] [--family reach] [--steps 30] [--cuda]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -69,11 +70,19 @@ def measure(size: str, family: str, steps: int, rank: int, compile: bool, device
     context = claw.context_tensor(test_context, device)
     replay = claw.ReplayBuffer(len(test_context["obs"]) + 2 * steps + 100, obs_dim, act_dim, 1, args.horizon, device)
     for i in range(len(test_context["obs"])):
-        replay.add(0, test_context["obs"][i], test_context["action"][i], float(test_context["reward"][i]),
-                   test_context["next_obs"][i], i == 0 or test_context["episode"][i] != test_context["episode"][i - 1])
+        replay.add(
+            0,
+            test_context["obs"][i],
+            test_context["action"][i],
+            float(test_context["reward"][i]),
+            test_context["next_obs"][i],
+            i == 0 or test_context["episode"][i] != test_context["episode"][i - 1],
+        )
 
     def update_step():
-        return update(model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(0, args.batch_size), context, discount, args)
+        return update(
+            model, hypernet, optimizers, scale, layout, n_wm, *replay.sample(0, args.batch_size), context, discount, args
+        )
 
     def adapt():
         with torch.no_grad():
@@ -85,8 +94,15 @@ def measure(size: str, family: str, steps: int, rank: int, compile: bool, device
     def loop_step():  # the body of the pretraining loop
         update_step()
         w = adapt()
-        action, state["mean"] = plan(model, w, torch.as_tensor(state["obs"], dtype=torch.float32, device=device),
-                                     None if state["first"] else state["mean"], discount, args, explore=True)
+        action, state["mean"] = plan(
+            model,
+            w,
+            torch.as_tensor(state["obs"], dtype=torch.float32, device=device),
+            None if state["first"] else state["mean"],
+            discount,
+            args,
+            explore=True,
+        )
         action = action.cpu().numpy()
         next_obs, reward, terminated, truncated, _ = env.step(action)
         replay.add(0, state["obs"], action, reward, next_obs, state["first"])
@@ -99,9 +115,16 @@ def measure(size: str, family: str, steps: int, rank: int, compile: bool, device
 
     # the first calls: every input kind the loop and the planner measurement meet, compiled here when compile is on
     compile_s = first_calls_seconds([update_step, loop_step, loop_step, mppi])
-    result = {"size": size, "mode": "compiled" if compile else "eager", "params": sum(p.numel() for p in model.base_parameters()),
-              "compile_s": compile_s if compile else 0.0, "update_ms": timed(update_step, steps, device),
-              "mppi_ms": timed(mppi, steps, device), "adapt_ms": timed(adapt, steps, device), "context_rows": len(context)}
+    result = {
+        "size": size,
+        "mode": "compiled" if compile else "eager",
+        "params": sum(p.numel() for p in model.base_parameters()),
+        "compile_s": compile_s if compile else 0.0,
+        "update_ms": timed(update_step, steps, device),
+        "mppi_ms": timed(mppi, steps, device),
+        "adapt_ms": timed(adapt, steps, device),
+        "context_rows": len(context),
+    }
     result["loop_sps"] = 1000 / timed(loop_step, steps, device)
     result["dr_step_ms"] = dr_gradient_step_ms(size, family, rank, test_context, compile, device, steps)
     return result
@@ -139,13 +162,18 @@ def main():
     device = torch.device("cuda" if cli.cuda else "cpu")
     name = torch.cuda.get_device_name() if cli.cuda else f"CPU, {torch.get_num_threads()} threads"
     print(f"torch {torch.__version__}, {name}, family {cli.family}, rank {cli.rank}, {cli.steps} timed repetitions")
-    print("| size | mode | base params | loop steps/s | update ms | MPPI ms/action | compile s | CLAW adapt ms (rows) | DR grad step ms |")
+    print(
+        "| size | mode | base params | loop steps/s | update ms | MPPI ms/action | compile s | CLAW adapt ms (rows) | DR grad step ms |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for size in cli.sizes:
         for mode in cli.modes:
             r = measure(size, cli.family, cli.steps, cli.rank, mode == "compiled", device)
-            print(f"| {size} | {r['mode']} | {r['params']:,} | {r['loop_sps']:.1f} | {r['update_ms']:.1f} | {r['mppi_ms']:.1f} | "
-                  f"{r['compile_s']:.0f} | {r['adapt_ms']:.2f} ({r['context_rows']}) | {r['dr_step_ms']:.1f} |", flush=True)
+            print(
+                f"| {size} | {r['mode']} | {r['params']:,} | {r['loop_sps']:.1f} | {r['update_ms']:.1f} | {r['mppi_ms']:.1f} | "
+                f"{r['compile_s']:.0f} | {r['adapt_ms']:.2f} ({r['context_rows']}) | {r['dr_step_ms']:.1f} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -8,9 +8,9 @@ import gymnasium
 import numpy as np
 
 
-def collect_episodes(env: gymnasium.Env, num_episodes: int,
-                     policy: Callable[[np.ndarray], np.ndarray] | None = None,
-                     seed: int | None = None) -> dict[str, np.ndarray]:
+def collect_episodes(
+    env: gymnasium.Env, num_episodes: int, policy: Callable[[np.ndarray], np.ndarray] | None = None, seed: int | None = None
+) -> dict[str, np.ndarray]:
     """Roll ``policy`` for ``num_episodes`` whole episodes (until terminated or truncated).
 
     Default policy: actions uniform in ``env.action_space`` from a generator seeded by ``seed``.

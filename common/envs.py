@@ -157,8 +157,7 @@ class _SeededEnv(gymnasium.Env):
 class DMCEnv(_SeededEnv):
     """dm_control suite task with action repeat and a flat, zero-padded observation."""
 
-    def __init__(self, domain: str, task: str, obs_dim: int, gear_scale: float = 1.0,
-                 seed: int | None = None):
+    def __init__(self, domain: str, task: str, obs_dim: int, gear_scale: float = 1.0, seed: int | None = None):
         super().__init__(seed)
         from dm_control import suite
 
@@ -222,13 +221,21 @@ class MetaWorldEnv(_SeededEnv):
         # frozen random vector that loop never ends, so refuse such a task up front.
         dist = float(np.linalg.norm(goal[:2] - obj_init[:2]))
         if dist < 0.15:
-            raise ValueError(f"{name}: goal {goal.tolist()} is {dist:.3f} < 0.15 from the object "
-                             f"start {obj_init.tolist()} in xy; Meta-World's reset would loop forever")
+            raise ValueError(
+                f"{name}: goal {goal.tolist()} is {dist:.3f} < 0.15 from the object "
+                f"start {obj_init.tolist()} in xy; Meta-World's reset would loop forever"
+            )
         self._mw = cls()
         # The task's rand_vec = [object start, goal]; set_task freezes it, so every reset is
         # identical and the goal is the only thing that differs between tasks.
-        self._mw.set_task(Task(env_name=name, data=pickle.dumps(
-            {"env_cls": cls, "rand_vec": np.concatenate([obj_init, goal]), "partially_observable": True})))
+        self._mw.set_task(
+            Task(
+                env_name=name,
+                data=pickle.dumps(
+                    {"env_cls": cls, "rand_vec": np.concatenate([obj_init, goal]), "partially_observable": True}
+                ),
+            )
+        )
         self.observation_space = _box(39)
         self.action_space = _action_box(4)
 
@@ -336,10 +343,17 @@ class Go1Env(_SeededEnv):
 
     def _obs(self) -> np.ndarray:
         q, lin_ang = self.data.qpos, self._body_velocities()
-        return np.concatenate([
-            q[2:3], q[3:7], q[self._qadr] - self.home_joints, lin_ang[0], lin_ang[1],
-            self.data.qvel[self._vadr], self._foot_contacts(),
-        ]).astype(np.float32)
+        return np.concatenate(
+            [
+                q[2:3],
+                q[3:7],
+                q[self._qadr] - self.home_joints,
+                lin_ang[0],
+                lin_ang[1],
+                self.data.qvel[self._vadr],
+                self._foot_contacts(),
+            ]
+        ).astype(np.float32)
 
     def _reward(self) -> float:
         z_up = self.data.xmat[self._trunk][8]  # world-z component of the body z-axis
@@ -379,8 +393,10 @@ def render_problem(family: str) -> str | None:
         return None
     except Exception as error:  # noqa: BLE001 - each GL backend fails in its own way
         gl = os.environ.get("MUJOCO_GL")
-        return (f"MuJoCo cannot render {family} with MUJOCO_GL={gl} ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
-                "run with MUJOCO_GL=egl (GPU, or Debian libegl1 libgl1-mesa-dri) or MUJOCO_GL=osmesa (CPU, Debian libosmesa6)")
+        return (
+            f"MuJoCo cannot render {family} with MUJOCO_GL={gl} ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}); "
+            "run with MUJOCO_GL=egl (GPU, or Debian libegl1 libgl1-mesa-dri) or MUJOCO_GL=osmesa (CPU, Debian libosmesa6)"
+        )
     finally:
         env.close()
 
@@ -429,5 +445,6 @@ def make_env(family: str, env_id: int, *, oracle: bool = False, seed: int | None
     if oracle:
         param = env_param(family, env_id)
         env = gymnasium.wrappers.TransformObservation(
-            env, lambda obs: np.concatenate([obs, param]), _box(_OBS_DIM[family] + param.size))
+            env, lambda obs: np.concatenate([obs, param]), _box(_OBS_DIM[family] + param.size)
+        )
     return gymnasium.wrappers.TimeLimit(env, max_episode_steps=_EPISODE_LENGTH[family])

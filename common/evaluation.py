@@ -6,6 +6,7 @@ script passes in:
     act(obs, first_step) -> action  # the planner with the currently adapted weights
 `context` is the dict returned by `common.context.collect_episodes` (pi_con data).
 """
+
 from __future__ import annotations
 
 import os
@@ -29,7 +30,9 @@ def progress_bar(iterable=None, total: int | None = None, desc: str = ""):
     return tqdm(iterable, total=total, desc=desc, leave=False, dynamic_ncols=True, disable=disable, mininterval=1.0)
 
 
-def online_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_steps: int, seed: int, desc: str | None = None) -> list[dict]:
+def online_adaptation(
+    env, context: dict, adapt: AdaptFn, act: ActFn, num_steps: int, seed: int, desc: str | None = None
+) -> list[dict]:
     """Exp 1: roll out for `num_steps` agent steps, re-adapting before every planner call.
 
     Returns one record per finished episode: the test-time step at which it ended, its return
@@ -50,8 +53,16 @@ def online_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_steps:
     return records
 
 
-def offline_adaptation(env, context: dict, adapt: AdaptFn, act: ActFn, num_episodes: int, seed: int, desc: str | None = None,
-                       video: str | bool | None = None) -> list[dict]:
+def offline_adaptation(
+    env,
+    context: dict,
+    adapt: AdaptFn,
+    act: ActFn,
+    num_episodes: int,
+    seed: int,
+    desc: str | None = None,
+    video: str | bool | None = None,
+) -> list[dict]:
     """Exp 2: adapt once on the fixed context data, freeze, and evaluate `num_episodes` episodes
     (desc: label of a progress bar over them). video: an .mp4 path that records the first episode (falsy: none)."""
     adapt(context)
@@ -101,8 +112,12 @@ def global_rng_state() -> dict:
 
     import torch
 
-    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None}
+    return {
+        "python": random.getstate(),
+        "numpy": np.random.get_state(),
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
+    }
 
 
 def set_global_rng_state(state: dict) -> None:
@@ -138,7 +153,9 @@ def save_evaluation_progress(path: str, results: dict, weights: str) -> None:
         if os.path.exists(path + ".tmp"):
             os.remove(path + ".tmp")
         kept = "; the previous one is intact" if os.path.exists(path) else ""
-        raise SystemExit(f"error: cannot write {path} ({str(error).splitlines()[0] if str(error) else type(error).__name__}){kept}") from None
+        raise SystemExit(
+            f"error: cannot write {path} ({str(error).splitlines()[0] if str(error) else type(error).__name__}){kept}"
+        ) from None
     os.replace(path + ".tmp", path)
 
 
@@ -154,9 +171,21 @@ def load_evaluation_progress(path: str, weights: str) -> dict:
     return progress["results"]
 
 
-def evaluate_family(env_ids, adapt: AdaptFn, act: ActFn, writer, args, *, online_adapt: AdaptFn | None = None,
-                    reset: AdaptFn | None = None, offline_points=None, env_kwargs: dict | None = None,
-                    progress_path: str | None = None, weights: str = "", after_each_env: Callable[[], None] | None = None) -> dict:
+def evaluate_family(
+    env_ids,
+    adapt: AdaptFn,
+    act: ActFn,
+    writer,
+    args,
+    *,
+    online_adapt: AdaptFn | None = None,
+    reset: AdaptFn | None = None,
+    offline_points=None,
+    env_kwargs: dict | None = None,
+    progress_path: str | None = None,
+    weights: str = "",
+    after_each_env: Callable[[], None] | None = None,
+) -> dict:
     """Exp 1 and Exp 2 on every environment of env_ids, with a script's adapt and act.
 
     Environment env_id of args.family (built with env_kwargs, e.g. the Oracle's oracle=True) gets a fresh pi_con
@@ -173,12 +202,19 @@ def evaluate_family(env_ids, adapt: AdaptFn, act: ActFn, writer, args, *, online
     results = {"online": {}, "offline": {}}
     if progress_path and os.path.exists(progress_path):  # an interrupted evaluation: skip the environments it finished
         results = load_evaluation_progress(progress_path, weights)
-    for env_id in list(env_ids)[len(results["online"]):]:
+    for env_id in list(env_ids)[len(results["online"]) :]:
         env = make_env(args.family, env_id, **(env_kwargs or {}), seed=args.seed + 10_000 + env_id)
         context = collect_episodes(env, args.context_episodes, seed=args.seed + 20_000 + env_id)
         reset(context)
-        online = online_adaptation(env, context, online_adapt or adapt, act, args.online_eval_steps,
-                                   seed=args.seed + 30_000 + env_id, desc=f"eval env {env_id} online")
+        online = online_adaptation(
+            env,
+            context,
+            online_adapt or adapt,
+            act,
+            args.online_eval_steps,
+            seed=args.seed + 30_000 + env_id,
+            desc=f"eval env {env_id} online",
+        )
         for record in online:
             writer.add_scalar(f"eval/online/env{env_id}/episodic_return", record["return"], record["step"])
             writer.add_scalar(f"eval/online/env{env_id}/success", record["success"], record["step"])
@@ -186,20 +222,36 @@ def evaluate_family(env_ids, adapt: AdaptFn, act: ActFn, writer, args, *, online
         offline_by_steps = {}
         for steps in offline_points if sweep else (0,):  # no sweep: one adaptation, logged at step 0
             reset(context) if sweep else None
-            video = args.capture_video and f"{writer.log_dir}/videos/env{env_id}_offline{f'_{steps}steps' if sweep else ''}.mp4"
-            offline = offline_adaptation(env, context, (lambda c, n=steps: adapt(c, n)) if sweep else adapt, act,
-                                         args.eval_episodes, seed=args.seed + 40_000 + env_id,
-                                         desc=f"eval env {env_id} offline", video=video)
-            writer.add_scalar(f"eval/offline/env{env_id}/episodic_return", float(np.mean([r["return"] for r in offline])), steps)
+            video = (
+                args.capture_video and f"{writer.log_dir}/videos/env{env_id}_offline{f'_{steps}steps' if sweep else ''}.mp4"
+            )
+            offline = offline_adaptation(
+                env,
+                context,
+                (lambda c, n=steps: adapt(c, n)) if sweep else adapt,
+                act,
+                args.eval_episodes,
+                seed=args.seed + 40_000 + env_id,
+                desc=f"eval env {env_id} offline",
+                video=video,
+            )
+            writer.add_scalar(
+                f"eval/offline/env{env_id}/episodic_return", float(np.mean([r["return"] for r in offline])), steps
+            )
             writer.add_scalar(f"eval/offline/env{env_id}/success", float(np.mean([r["success"] for r in offline])), steps)
             offline_by_steps[steps] = offline
         results["offline"][env_id] = offline_by_steps if sweep else offline_by_steps[0]
         if sweep:
-            offline_text = ", ".join(f"{np.mean([r['return'] for r in recs]):.1f} ({n} steps)" for n, recs in offline_by_steps.items())
+            offline_text = ", ".join(
+                f"{np.mean([r['return'] for r in recs]):.1f} ({n} steps)" for n, recs in offline_by_steps.items()
+            )
         else:
             offline_text = f"{np.mean([r['return'] for r in offline_by_steps[0]]):.1f}"
-        print(f"eval env {env_id}: online last-episode return {online[-1]['return'] if online else float('nan'):.1f}, "
-              f"offline return {offline_text}", flush=True)
+        print(
+            f"eval env {env_id}: online last-episode return {online[-1]['return'] if online else float('nan'):.1f}, "
+            f"offline return {offline_text}",
+            flush=True,
+        )
         if progress_path:
             save_evaluation_progress(progress_path, results, weights)
         if after_each_env:

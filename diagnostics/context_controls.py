@@ -30,6 +30,7 @@ uninterrupted run gives. They are removed once the result is written.
 --json writes the dict that controls() returns; JSON turns its integer keys (environments, context sizes) into strings,
 and an online arm that finishes no episode is NaN there, as Python's json writes and reads it.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -81,7 +82,9 @@ class SwappedContext(torch.nn.Module):
         self.hypernet, self.contexts, self.offset = hypernet, contexts, offset
 
     def forward(self, transitions):
-        matches = [j for j, rows in enumerate(self.contexts) if rows.shape == transitions.shape and torch.equal(rows, transitions)]
+        matches = [
+            j for j, rows in enumerate(self.contexts) if rows.shape == transitions.shape and torch.equal(rows, transitions)
+        ]
         if len(matches) != 1:
             raise RuntimeError(f"the hypernet input matches {len(matches)} environments' own contexts, expected exactly one")
         return self.hypernet(self.contexts[(matches[0] + self.offset) % len(self.contexts)])
@@ -96,7 +99,10 @@ def load(path: str):
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
-    obs_dim, act_dim = saved.get("dims") or (make_env(args.family, 0).observation_space.shape[0], make_env(args.family, 0).action_space.shape[0])
+    obs_dim, act_dim = saved.get("dims") or (
+        make_env(args.family, 0).observation_space.shape[0],
+        make_env(args.family, 0).action_space.shape[0],
+    )
     model = claw.WorldModel(obs_dim, act_dim, args.model_size, args)  # as claw.main builds them: same random draws
     layout, n_wm, n_pi = claw.lora_layout(model, args.rank)
     hypernet = claw.Hypernet(2 * obs_dim + act_dim + 1, claw.lora_template(layout, n_wm + n_pi), args)
@@ -114,10 +120,17 @@ def run_arm(loaded, hypernet_input, eval_args: claw.Args, progress_path: str | N
     np.random.seed(args.seed)
     torch.set_rng_state(rng)
     with contextlib.redirect_stdout(io.StringIO()):  # evaluate's own per-environment lines
-        results = claw.evaluate(model, hypernet_input, layout, discount, NullWriter(), torch.device("cpu"), eval_args, progress_path)
-    return {protocol: {env_id: float(np.mean([r["return"] for r in records])) if records else float("nan")
-                       for env_id, records in results[protocol].items()}
-            for protocol in ("offline", "online") if protocol == "offline" or eval_args.online_eval_steps > 0}
+        results = claw.evaluate(
+            model, hypernet_input, layout, discount, NullWriter(), torch.device("cpu"), eval_args, progress_path
+        )
+    return {
+        protocol: {
+            env_id: float(np.mean([r["return"] for r in records])) if records else float("nan")
+            for env_id, records in results[protocol].items()
+        }
+        for protocol in ("offline", "online")
+        if protocol == "offline" or eval_args.online_eval_steps > 0
+    }
 
 
 def load_finished_arms(progress: str | None, identity: tuple, log) -> dict:
@@ -132,20 +145,34 @@ def load_finished_arms(progress: str | None, identity: tuple, log) -> dict:
     return saved["arms"]
 
 
-def controls(path: str, swap_offset: int = 1, context_episodes=(1, 3, 10), eval_episodes: int = 10,
-             online_eval_steps: int = 0, log=print, progress: str | None = None) -> dict:
+def controls(
+    path: str,
+    swap_offset: int = 1,
+    context_episodes=(1, 3, 10),
+    eval_episodes: int = 10,
+    online_eval_steps: int = 0,
+    log=print,
+    progress: str | None = None,
+) -> dict:
     """{"context_episodes": K (the checkpoint's), "swap": {"own"|"swapped": {"offline"|"online": {env: return}}},
     "size": {k: {env: offline return}}}. progress: prefix of the files that let an interrupted run go on."""
     loaded = load(path)
     args, model, hypernet = loaded[0], loaded[1], loaded[2]
     n = num_envs(args.family)
     if swap_offset % n == 0:
-        raise SystemExit(f"error: --swap-offset {swap_offset} is a multiple of the {n} environments of {args.family}: "
-                         "every environment would get its own context")
+        raise SystemExit(
+            f"error: --swap-offset {swap_offset} is a multiple of the {n} environments of {args.family}: "
+            "every environment would get its own context"
+        )
     if min(context_episodes) < 1 or eval_episodes < 1 or online_eval_steps < 0:
         raise SystemExit("error: --context-episodes and --eval-episodes must be >= 1, --online-eval-steps >= 0")
     # what the saved arms' numbers depend on besides their keys; a compiled planner draws other random streams
-    identity = (claw.weights_digest(model), claw.weights_digest(hypernet), eval_episodes, getattr(claw.plan, "is_compiled", False))
+    identity = (
+        claw.weights_digest(model),
+        claw.weights_digest(hypernet),
+        eval_episodes,
+        getattr(claw.plan, "is_compiled", False),
+    )
     cache = load_finished_arms(progress, identity, log)
     # evaluate() checks its progress file against the model weights only: the per-arm files carry the whole identity
     # in their names, so one left by other settings is never taken up (and is removed here)
@@ -158,22 +185,37 @@ def controls(path: str, swap_offset: int = 1, context_episodes=(1, 3, 10), eval_
     def arm(episodes: int, offset: int | None, online_steps: int) -> dict:
         key = (episodes, offset, online_steps)  # every arm is deterministic: equal keys give equal numbers
         if key not in cache:
-            log(f"arm: {episodes}-episode contexts, {'own' if offset is None else f'swapped by {offset}'}, "
-                f"{online_steps} online steps, {eval_episodes} offline episodes per environment")
-            eval_args = dataclasses.replace(args, context_episodes=episodes, eval_episodes=eval_episodes, online_eval_steps=online_steps)
-            hypernet_input = hypernet if offset is None else SwappedContext(
-                hypernet, [own_context(args, j, episodes) for j in range(n)], offset)
-            cache[key] = run_arm(loaded, hypernet_input, eval_args, progress and f"{progress}.arm-{tag}-{episodes}-{offset}-{online_steps}.pt")
+            log(
+                f"arm: {episodes}-episode contexts, {'own' if offset is None else f'swapped by {offset}'}, "
+                f"{online_steps} online steps, {eval_episodes} offline episodes per environment"
+            )
+            eval_args = dataclasses.replace(
+                args, context_episodes=episodes, eval_episodes=eval_episodes, online_eval_steps=online_steps
+            )
+            hypernet_input = (
+                hypernet
+                if offset is None
+                else SwappedContext(hypernet, [own_context(args, j, episodes) for j in range(n)], offset)
+            )
+            cache[key] = run_arm(
+                loaded, hypernet_input, eval_args, progress and f"{progress}.arm-{tag}-{episodes}-{offset}-{online_steps}.pt"
+            )
             if progress:  # atomic, as evaluate()'s own progress file
                 torch.save({"identity": identity, "arms": cache}, progress + ".arms.tmp")
                 os.replace(progress + ".arms.tmp", progress + ".arms.pt")
         return cache[key]
 
     k = args.context_episodes
-    return {"family": args.family, "n_envs": n, "context_episodes": k, "swap_offset": swap_offset,
-            "eval_episodes": eval_episodes, "online_eval_steps": online_eval_steps,
-            "swap": {"own": arm(k, None, online_eval_steps), "swapped": arm(k, swap_offset, online_eval_steps)},
-            "size": {e: arm(e, None, 0)["offline"] for e in context_episodes}}
+    return {
+        "family": args.family,
+        "n_envs": n,
+        "context_episodes": k,
+        "swap_offset": swap_offset,
+        "eval_episodes": eval_episodes,
+        "online_eval_steps": online_eval_steps,
+        "swap": {"own": arm(k, None, online_eval_steps), "swapped": arm(k, swap_offset, online_eval_steps)},
+        "size": {e: arm(e, None, 0)["offline"] for e in context_episodes},
+    }
 
 
 def table(header: list[str], columns: list[dict], n: int) -> list[str]:
@@ -191,35 +233,59 @@ def table(header: list[str], columns: list[dict], n: int) -> list[str]:
 
 def report(path: str, result: dict) -> str:
     n, k, o = result["n_envs"], result["context_episodes"], result["swap_offset"]
-    lines = [f"# Context controls: {path}", "",
-             f"family {result['family']}, {n} environments; returns are means over {result['eval_episodes']} offline episodes "
-             "per environment; the mean row is the mean over environments with its 95% t-CI across environments.", ""]
+    lines = [
+        f"# Context controls: {path}",
+        "",
+        f"family {result['family']}, {n} environments; returns are means over {result['eval_episodes']} offline episodes "
+        "per environment; the mean row is the mean over environments with its 95% t-CI across environments.",
+        "",
+    ]
     protocols = [("offline", "Exp 2 offline protocol (one hypernet pass, adapters frozen)")]
     if result["online_eval_steps"] > 0:
-        protocols.append(("online", f"Exp 1 online protocol ({result['online_eval_steps']} steps; mean return of the finished episodes)"))
+        protocols.append(
+            ("online", f"Exp 1 online protocol ({result['online_eval_steps']} steps; mean return of the finished episodes)")
+        )
     for protocol, title in protocols:
         own, swapped = result["swap"]["own"][protocol], result["swap"]["swapped"][protocol]
         drop = {e: own[e] - swapped[e] for e in range(n)}
-        lines += [f"## Own vs swapped context: {title}, {k}-episode contexts", "",
-                  *table(["env j", "own context", f"context of env (j+{o}) mod {n}", "own - swapped"], [own, swapped, drop], n), ""]
+        lines += [
+            f"## Own vs swapped context: {title}, {k}-episode contexts",
+            "",
+            *table(["env j", "own context", f"context of env (j+{o}) mod {n}", "own - swapped"], [own, swapped, drop], n),
+            "",
+        ]
     sizes = result["size"]
-    lines += ["## Context size: own-context offline protocol", "",
-              *table(["env j", *[f"{e} episode{'s' * (e != 1)}" for e in sizes]], list(sizes.values()), n), ""]
+    lines += [
+        "## Context size: own-context offline protocol",
+        "",
+        *table(["env j", *[f"{e} episode{'s' * (e != 1)}" for e in sizes]], list(sizes.values()), n),
+        "",
+    ]
     return "\n".join(lines)
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint")
-    parser.add_argument("--swap-offset", type=int, default=1, help="environment j gets the context of environment (j + this) mod n")
-    parser.add_argument("--context-episodes", type=int, nargs="+", default=[1, 3, 10], help="pi_con episodes per context (size control)")
+    parser.add_argument(
+        "--swap-offset", type=int, default=1, help="environment j gets the context of environment (j + this) mod n"
+    )
+    parser.add_argument(
+        "--context-episodes", type=int, nargs="+", default=[1, 3, 10], help="pi_con episodes per context (size control)"
+    )
     parser.add_argument("--eval-episodes", type=int, default=10, help="Exp 2 offline episodes per environment and arm")
-    parser.add_argument("--online-eval-steps", type=int, default=0, help="Exp 1 online steps per environment and swap arm (0: none)")
+    parser.add_argument(
+        "--online-eval-steps", type=int, default=0, help="Exp 1 online steps per environment and swap arm (0: none)"
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    parser.add_argument("--compile", choices=["on", "off"], default="off",
-                        help="on: torch.compile the MPPI planner for long evaluations (~1.7x faster on a CPU at size F, "
-                             "after ~1 minute of compiling once); the hypernet pass runs once per context and stays eager. "
-                             "Compiled and eager draw other random streams: the own arm then differs from --eval-only's numbers")
+    parser.add_argument(
+        "--compile",
+        choices=["on", "off"],
+        default="off",
+        help="on: torch.compile the MPPI planner for long evaluations (~1.7x faster on a CPU at size F, "
+        "after ~1 minute of compiling once); the hypernet pass runs once per context and stays eager. "
+        "Compiled and eager draw other random streams: the own arm then differs from --eval-only's numbers",
+    )
     parser.add_argument("--out", help="also write the markdown tables to this file")
     parser.add_argument("--json", help="also write the result as JSON to this file (atomically)")
     parser.add_argument("--progress", help="prefix of the files that let an interrupted run go on (default: the --json path)")
@@ -228,8 +294,15 @@ def main(argv=None):
     if cli.compile == "on":  # evaluate() looks plan up in claw's globals, as claw.main's own --compile rebinding relies on
         claw.plan = claw.compiled(claw.plan, torch.device("cpu"))
     progress = cli.progress or cli.json
-    result = controls(cli.checkpoint, cli.swap_offset, cli.context_episodes, cli.eval_episodes, cli.online_eval_steps,
-                      log=lambda line: print(line, file=sys.stderr, flush=True), progress=progress)
+    result = controls(
+        cli.checkpoint,
+        cli.swap_offset,
+        cli.context_episodes,
+        cli.eval_episodes,
+        cli.online_eval_steps,
+        log=lambda line: print(line, file=sys.stderr, flush=True),
+        progress=progress,
+    )
     text = report(cli.checkpoint, result)
     print(text)
     if cli.out:

@@ -20,6 +20,7 @@ Computed in float64, so changes down to ~1e-12 are resolved.
 The sweep launcher (`sweep.py`) runs it on every CLAW, FiLM, Concat and post-hoc run it finishes and keeps
 context_effect.md in the run's archive, which outlives the checkpoint.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -71,16 +72,23 @@ def build(method, state: dict):
         template = method.lora_template(layout, n_wm + n_pi)
     hypernet = method.Hypernet(transition_dim, template, args)
     hypernet.load_state_dict(state["hypernet"])
-    return args, model, lambda rows: method.adapted_weights(model, hypernet(rows) if rows is not None else torch.zeros(n_wm + n_pi), layout)
+    return (
+        args,
+        model,
+        lambda rows: method.adapted_weights(model, hypernet(rows) if rows is not None else torch.zeros(n_wm + n_pi), layout),
+    )
 
 
 def predictions(method, model, weights, obs, action, args) -> dict:
     z = model.encode(obs, weights)
     torch.manual_seed(0)  # one noise draw for the policy prior, the same in every arm
-    return {"latent": z, "next latent": model.next(z, action, weights),
-            "reward": method.two_hot_inv(model.reward_logits(z, action, weights), args),
-            "Q": method.two_hot_inv(model.Q(z, action, weights, "all"), args).mean(0),
-            "policy action": model.pi(z, weights)[0]}
+    return {
+        "latent": z,
+        "next latent": model.next(z, action, weights),
+        "reward": method.two_hot_inv(model.reward_logits(z, action, weights), args),
+        "Q": method.two_hot_inv(model.Q(z, action, weights, "all"), args).mean(0),
+        "policy action": model.pi(z, weights)[0],
+    }
 
 
 @torch.no_grad()
@@ -109,8 +117,10 @@ def markdown(results: dict) -> str:
     of the means: about 1, the predictions do not depend on whose context the model sees)."""
     arms = [arm for arm in ARMS if all(arm in r for r in results.values())]
     mean = lambda arm, name: sum(r[arm][name] for r in results.values()) / len(results)  # noqa: E731
-    lines = ["| relative change of | " + " | ".join(f"{arm} (mean / max env)" for arm in arms) + " | swap / same |",
-             "|---|" + "---|" * (len(arms) + 1)]
+    lines = [
+        "| relative change of | " + " | ".join(f"{arm} (mean / max env)" for arm in arms) + " | swap / same |",
+        "|---|" + "---|" * (len(arms) + 1),
+    ]
     for name in OUTPUTS:
         cells = [f"{mean(arm, name):.2e} / {max(r[arm][name] for r in results.values()):.2e}" for arm in arms]
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {mean('swap', name) / max(mean('same', name), 1e-300):.1f} |")
@@ -148,12 +158,19 @@ def main(argv=None):
                 batches[j] = (obs[0].double(), action[0].double())
             env = make_env(family, j)
             for d in range(cli.draws):  # seeds apart from the evaluation's and the pretraining pool's
-                contexts[j, d] = method.context_tensor(collect_episodes(env, cli.episodes, seed=3_000_000_000 + 1000 * d + j), "cpu").double()
+                contexts[j, d] = method.context_tensor(
+                    collect_episodes(env, cli.episodes, seed=3_000_000_000 + 1000 * d + j), "cpu"
+                ).double()
         results = context_effect(method, model, weights_for, args, batches, contexts)
     missing = sorted(set(range(n)) - set(batches))
-    report = (f"{cli.checkpoint}: {state['method']}, family {family}, size {args.model_size}; {len(batches)} environments "
-              f"with replay ({cli.batch} transitions each), {cli.draws} fresh {cli.episodes}-episode contexts each"
-              + (f"; no replay for environment(s) {missing}" if missing else "") + "\n\n" + markdown(results) + "\n")
+    report = (
+        f"{cli.checkpoint}: {state['method']}, family {family}, size {args.model_size}; {len(batches)} environments "
+        f"with replay ({cli.batch} transitions each), {cli.draws} fresh {cli.episodes}-episode contexts each"
+        + (f"; no replay for environment(s) {missing}" if missing else "")
+        + "\n\n"
+        + markdown(results)
+        + "\n"
+    )
     print(report, end="")
     if cli.out:
         with open(cli.out, "w") as f:

@@ -19,6 +19,7 @@ The tracked position is the hand for Reach and the object for Push.
 
 Usage: python diagnostics/context_identifiability.py [--family reach] [--draws 6] [--probe-refresh 20]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -33,10 +34,9 @@ import scipy.stats  # noqa: E402
 import torch  # noqa: E402
 
 import claw_tdmpc2 as claw  # noqa: E402
-from diagnostics.inspect_adapters import between_within  # noqa: E402
-
 from common.context import collect_episodes  # noqa: E402
 from common.envs import env_param, make_env, num_envs  # noqa: E402
+from diagnostics.inspect_adapters import between_within  # noqa: E402
 
 TRACKED_SLICE = {"reach": slice(0, 3), "push": slice(4, 7)}  # hand xyz; object xyz
 
@@ -60,8 +60,9 @@ def nearest_centroid_accuracy(features: np.ndarray, labels: np.ndarray) -> int:
     return hits
 
 
-def train_encoder_probe(draw, labels, test: list, test_labels, steps: int, seed: int = 0,
-                        statistics: torch.Tensor | None = None) -> tuple[int, float]:
+def train_encoder_probe(
+    draw, labels, test: list, test_labels, steps: int, seed: int = 0, statistics: torch.Tensor | None = None
+) -> tuple[int, float]:
     """Fit claw.ContextEncoder + a linear goal head; step t trains on the contexts `draw(t)` returns (tensors
     [N, 2*obs+act+1], one per entry of `labels`). `statistics`: rows that fix the standardisation, as the
     initial context pool does in pretraining. Returns (test contexts classified correctly, u_con ratio
@@ -94,9 +95,15 @@ def main():
     parser.add_argument("--draws", type=int, default=6, help="contexts per goal")
     parser.add_argument("--context-episodes", type=int, default=3)
     parser.add_argument("--probe-steps", type=int, default=3000)
-    parser.add_argument("--probe-pool", type=int, default=20, help="pi_con episodes per goal the probe draws from (as --context-pool-episodes)")
-    parser.add_argument("--probe-refresh", type=int, default=20,
-                        help="steps between replacing each goal's oldest pool episode by a fresh one; 0: a fixed pool")
+    parser.add_argument(
+        "--probe-pool", type=int, default=20, help="pi_con episodes per goal the probe draws from (as --context-pool-episodes)"
+    )
+    parser.add_argument(
+        "--probe-refresh",
+        type=int,
+        default=20,
+        help="steps between replacing each goal's oldest pool episode by a fresh one; 0: a fixed pool",
+    )
     opts = parser.parse_args()
 
     n = num_envs(opts.family)
@@ -118,22 +125,32 @@ def main():
         pool = collect_episodes(env, pool_size, seed=10**6 + 1000 * g)  # another seed range: never a test context
         pools.append(torch.split(claw.context_tensor(pool, "cpu"), np.bincount(pool["episode"]).tolist()))
         start = context["obs"][0, TRACKED_SLICE[opts.family]]
-        print(f"goal {g} {goals[g]}: distance from start {np.linalg.norm(goals[g] - start):.3f}, "
-              f"mean reward (last draw) {mean[0]:.3f}, position range {np.ptp(position, 0).round(3)}")
+        print(
+            f"goal {g} {goals[g]}: distance from start {np.linalg.norm(goals[g] - start):.3f}, "
+            f"mean reward (last draw) {mean[0]:.3f}, position range {np.ptp(position, 0).round(3)}"
+        )
     labels, total = np.array(labels), n * opts.draws
-    print(f"contexts: {opts.draws} per goal x {n} goals, {opts.context_episodes} pi_con episodes each; chance {total // n}/{total}")
+    print(
+        f"contexts: {opts.draws} per goal x {n} goals, {opts.context_episodes} pi_con episodes each; chance {total // n}/{total}"
+    )
     print(f"mean reward:          {nearest_centroid_accuracy(np.array(means), labels)}/{total}")
     print(f"+ reward~position:    {nearest_centroid_accuracy(np.c_[np.array(means), np.array(slopes)], labels)}/{total}")
     print(f"distance form (bound): {distance_hits}/{total}")
+
     def draw(step):  # one context per goal: whole episodes from the pool's current window
         start = step // opts.probe_refresh if opts.probe_refresh else 0
-        return [torch.cat([pool[start + i] for i in torch.randperm(opts.probe_pool)[: opts.context_episodes].tolist()]) for pool in pools]
+        return [
+            torch.cat([pool[start + i] for i in torch.randperm(opts.probe_pool)[: opts.context_episodes].tolist()])
+            for pool in pools
+        ]
 
     initial = torch.cat([episode for pool in pools for episode in pool[: opts.probe_pool]])
     hits, ratio = train_encoder_probe(draw, list(range(n)), tensors, labels, opts.probe_steps, statistics=initial)
     source = f"refreshed every {opts.probe_refresh} steps" if opts.probe_refresh else "fixed"
-    print(f"learned encoder:      {hits}/{total}, u_con ratio other/same goal {ratio:.2f} ({opts.probe_pool}-episode pool per goal, "
-          f"{source}, {opts.probe_steps} Adam steps)")
+    print(
+        f"learned encoder:      {hits}/{total}, u_con ratio other/same goal {ratio:.2f} ({opts.probe_pool}-episode pool per goal, "
+        f"{source}, {opts.probe_steps} Adam steps)"
+    )
 
 
 if __name__ == "__main__":

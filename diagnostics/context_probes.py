@@ -18,6 +18,7 @@ wrapped tool runs and restores it afterwards.
 Inspect and evaluate a probe's checkpoint through the same probe: a goal-probe hypernetwork fed plain
 contexts sees all-zero goal slots it never saw in training.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -32,8 +33,8 @@ import numpy as np  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
 import claw_tdmpc2 as claw  # noqa: E402
-from diagnostics import context_controls, inspect_adapters  # noqa: E402
 from common.context import collect_episodes  # noqa: E402
+from diagnostics import context_controls, inspect_adapters  # noqa: E402
 
 HIDDEN_GOAL = slice(36, 39)  # Meta-World's goal slots, zeroed by common.envs for the hidden-goal families
 
@@ -57,14 +58,19 @@ def patches(probe: str) -> list:
     if probe == "unorm":
         return [mock.patch.object(claw.ContextEncoder, "forward", normalised_forward)]
     # every place that collects a context for the hypernetwork: pretraining pool and evaluate(), and the two tools
-    return [mock.patch.object(module, "collect_episodes", goal_revealing_collect) for module in (claw, inspect_adapters, context_controls)]
+    return [
+        mock.patch.object(module, "collect_episodes", goal_revealing_collect)
+        for module in (claw, inspect_adapters, context_controls)
+    ]
 
 
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) < 2 or argv[0] not in ("unorm", "goal") or argv[1] not in ("train", "inspect", "controls"):
-        raise SystemExit("usage: context_probes.py {unorm,goal} {train <claw_tdmpc2.py flags> | inspect <checkpoint> [flags]"
-                         " | controls <checkpoint> [flags]}")
+        raise SystemExit(
+            "usage: context_probes.py {unorm,goal} {train <claw_tdmpc2.py flags> | inspect <checkpoint> [flags]"
+            " | controls <checkpoint> [flags]}"
+        )
     probe, tool, rest = argv[0], argv[1], argv[2:]
     with contextlib.ExitStack() as stack:
         for patch in patches(probe):

@@ -12,6 +12,7 @@ decoder on that target cannot identify the environments. Held out: a random fift
 
 Usage: python diagnostics/decoder_signal.py [--family walker] [--episodes 10] [--steps 3000]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,7 +33,9 @@ from common.envs import make_env, num_envs  # noqa: E402
 def standardise(train: np.ndarray, test: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     mean, std = train.mean(0), train.std(0)
     std = np.where(std > 1e-6, std, 1.0)  # constant features: only centred
-    return torch.as_tensor((train - mean) / std, dtype=torch.float32), torch.as_tensor((test - mean) / std, dtype=torch.float32)
+    return torch.as_tensor((train - mean) / std, dtype=torch.float32), torch.as_tensor(
+        (test - mean) / std, dtype=torch.float32
+    )
 
 
 def held_out_mse(x_train, y_train, x_test, y_test, steps: int, seed: int = 0, batch: int = 512) -> float:
@@ -54,13 +57,17 @@ def signal(transitions: list[dict], steps: int, test_fraction: float = 0.2, seed
     """transitions: one collect_episodes() dict per environment -> {target: (held-out target variance, MSE without id,
     MSE with id, gap)}."""
     pooled = {key: np.concatenate([data[key] for data in transitions]) for key in ("obs", "action", "next_obs", "reward")}
-    env_ids = np.eye(len(transitions), dtype=np.float32)[np.concatenate([np.full(len(d["reward"]), j) for j, d in enumerate(transitions)])]
+    env_ids = np.eye(len(transitions), dtype=np.float32)[
+        np.concatenate([np.full(len(d["reward"]), j) for j, d in enumerate(transitions)])
+    ]
     order = np.random.default_rng(seed).permutation(len(env_ids))
     cut = int(len(order) * (1 - test_fraction))
     train, test = order[:cut], order[cut:]
     symlog_reward = claw.symlog(torch.as_tensor(pooled["reward"][:, None])).numpy()
-    targets = {"reward": (np.c_[pooled["obs"], pooled["action"], pooled["next_obs"]], symlog_reward),
-               "next state": (np.c_[pooled["obs"], pooled["action"]], pooled["next_obs"])}
+    targets = {
+        "reward": (np.c_[pooled["obs"], pooled["action"], pooled["next_obs"]], symlog_reward),
+        "next state": (np.c_[pooled["obs"], pooled["action"]], pooled["next_obs"]),
+    }
     result = {}
     for name, (inputs, target) in targets.items():
         if name == "next state":  # per-dimension MSE in units of each dimension's spread
@@ -87,10 +94,14 @@ def main(argv=None):
     if cli.episodes < 1 or cli.steps < 1:
         raise SystemExit("error: --episodes and --steps must be >= 1")
     torch.set_num_threads(cli.threads)
-    transitions = [collect_episodes(make_env(cli.family, j, seed=cli.seed + j), cli.episodes, seed=cli.seed + 1000 + j)
-                   for j in range(num_envs(cli.family))]
-    print(f"{cli.family}: {num_envs(cli.family)} environments x {cli.episodes} pi_con episodes "
-          f"({sum(len(t['reward']) for t in transitions)} transitions), {cli.steps} Adam steps per regressor")
+    transitions = [
+        collect_episodes(make_env(cli.family, j, seed=cli.seed + j), cli.episodes, seed=cli.seed + 1000 + j)
+        for j in range(num_envs(cli.family))
+    ]
+    print(
+        f"{cli.family}: {num_envs(cli.family)} environments x {cli.episodes} pi_con episodes "
+        f"({sum(len(t['reward']) for t in transitions)} transitions), {cli.steps} Adam steps per regressor"
+    )
     print("| target | held-out variance | MSE without the environment's id | with it | gap: 1 - with / without |")
     print("|---|---|---|---|---|")
     result = signal(transitions, cli.steps, seed=cli.seed)

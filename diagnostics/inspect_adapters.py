@@ -14,6 +14,7 @@ a CLAW that plans with its base weights, whatever phi's norm).
 
     python diagnostics/inspect_adapters.py runs/<run>/checkpoint.pt [--episodes 3] [--draws 4]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,8 +38,12 @@ def between_within(values: dict) -> tuple[float, float, float]:
     """values[(env, draw)] -> vector. Mean distance between two draws of one environment, mean
     distance between two environments (same draw index), and their ratio."""
     envs, draws = sorted({e for e, _ in values}), sorted({d for _, d in values})
-    same = torch.stack([(values[e, a] - values[e, b]).norm() for e in envs for a, b in itertools.combinations(draws, 2)]).mean()
-    other = torch.stack([(values[a, d] - values[b, d]).norm() for a, b in itertools.combinations(envs, 2) for d in draws]).mean()
+    same = torch.stack(
+        [(values[e, a] - values[e, b]).norm() for e in envs for a, b in itertools.combinations(draws, 2)]
+    ).mean()
+    other = torch.stack(
+        [(values[a, d] - values[b, d]).norm() for a, b in itertools.combinations(envs, 2) for d in draws]
+    ).mean()
     return float(same), float(other), float(other / same.clamp_min(1e-12))
 
 
@@ -63,17 +68,23 @@ def input_sensitivity(encoder, contexts: list, obs_dim: int, act_dim: int) -> di
     matter), per group, over the features that vary in the contexts (constant ones carry nothing)."""
     rows = torch.cat(contexts)
     varying = rows.std(0) > 1e-6
-    groups = {"s": slice(0, obs_dim), "a": slice(obs_dim, obs_dim + act_dim), "r": slice(obs_dim + act_dim, obs_dim + act_dim + 1),
-              "s'": slice(obs_dim + act_dim + 1, None)}
+    groups = {
+        "s": slice(0, obs_dim),
+        "a": slice(obs_dim, obs_dim + act_dim),
+        "r": slice(obs_dim + act_dim, obs_dim + act_dim + 1),
+        "s'": slice(obs_dim + act_dim + 1, None),
+    }
     squares = torch.zeros(rows.shape[1])
     for context in contexts:
         standardised = ((context - encoder.feature_mean) / encoder.feature_std).requires_grad_(True)
-        jacobian = torch.autograd.functional.jacobian(
-            lambda x: encoder.context(encoder.embed(x).mean(0)), standardised)  # [context_dim, N, features]
+        # [context_dim, N, features]
+        jacobian = torch.autograd.functional.jacobian(lambda x: encoder.context(encoder.embed(x).mean(0)), standardised)
         squares += jacobian.pow(2).sum((0, 1)) * len(context)  # N x: the per-row pooling weight is 1/N
     rms = (squares / (len(contexts) * encoder.context[-1].out_features)).sqrt()
-    return {name: float(rms[group][varying[group]].pow(2).mean().sqrt()) if varying[group].any() else float("nan")
-            for name, group in groups.items()}
+    return {
+        name: float(rms[group][varying[group]].pow(2).mean().sqrt()) if varying[group].any() else float("nan")
+        for name, group in groups.items()
+    }
 
 
 def main(argv=None):
@@ -101,27 +112,40 @@ def main(argv=None):
     pool.episodes = state["contexts"][0]
     torch.manual_seed(0)
     training = {(env_id, draw): pool.sample(env_id) for env_id in range(n) for draw in range(cli.draws)}
-    print(f"{cli.checkpoint}: family {args.family}, size {args.model_size}, rank {args.rank}; "
-          f"{cli.draws} contexts per environment and source")
+    print(
+        f"{cli.checkpoint}: family {args.family}, size {args.model_size}, rank {args.rank}; "
+        f"{cli.draws} contexts per environment and source"
+    )
     with torch.no_grad():
         phis = [hypernet(fresh[e, 0]) for e in range(n)]
         phi_norm = torch.stack([phi[:n_wm].norm() for phi in phis]).mean()
-        print(f"||template (world model)|| = {hypernet.template[:n_wm].norm():.4f}, "
-              f"||phi (world model)|| = {phi_norm:.4f} (template + generated delta, mean over environments)")
+        print(
+            f"||template (world model)|| = {hypernet.template[:n_wm].norm():.4f}, "
+            f"||phi (world model)|| = {phi_norm:.4f} (template + generated delta, mean over environments)"
+        )
         sizes, spreads = merged_update_sizes(model, phis, layout)
-        print(f"merged update ||A B|| / ||W0|| over the {len(sizes)} adapted layers (environment 0, fresh context): median "
-              f"{sorted(sizes)[len(sizes) // 2]:.2e}, max {max(sizes):.2e}; largest ||A B (env e) - A B (env 0)|| / ||W0||: "
-              f"median {sorted(spreads)[len(spreads) // 2]:.2e}, max {max(spreads):.2e}")
+        print(
+            f"merged update ||A B|| / ||W0|| over the {len(sizes)} adapted layers (environment 0, fresh context): median "
+            f"{sorted(sizes)[len(sizes) // 2]:.2e}, max {max(sizes):.2e}; largest ||A B (env e) - A B (env 0)|| / ||W0||: "
+            f"median {sorted(spreads)[len(spreads) // 2]:.2e}, max {max(spreads):.2e}"
+        )
         for source, contexts in (("fresh", fresh), ("training pool", training)):
             embeddings = {key: hypernet.encoder(rows) for key, rows in contexts.items()}
             adapters = {key: hypernet(rows)[:n_wm] - hypernet.template[:n_wm] for key, rows in contexts.items()}
             for name, values in (("u_con", embeddings), ("delta phi (world model)", adapters)):
                 same, other, ratio = between_within(values)
                 size = torch.stack([v.norm() for v in values.values()]).mean()
-                print(f"{source:13s} {name:24s} mean norm {size:.4f} | same env, other context {same:.2e} | "
-                      f"other env {other:.2e} | ratio {ratio:.2f}")
-    print("u_con sensitivity per standardised input feature (RMS of d u_con / d x over the fresh contexts' varying "
-          "features): " + ", ".join(f"{k} {v:.2e}" for k, v in input_sensitivity(hypernet.encoder, list(fresh.values()), obs_dim, act_dim).items()))
+                print(
+                    f"{source:13s} {name:24s} mean norm {size:.4f} | same env, other context {same:.2e} | "
+                    f"other env {other:.2e} | ratio {ratio:.2f}"
+                )
+    print(
+        "u_con sensitivity per standardised input feature (RMS of d u_con / d x over the fresh contexts' varying "
+        "features): "
+        + ", ".join(
+            f"{k} {v:.2e}" for k, v in input_sensitivity(hypernet.encoder, list(fresh.values()), obs_dim, act_dim).items()
+        )
+    )
     # where the world-model loss's gradient goes inside the hypernetwork, on the run's own replay
     replay = claw.ReplayBuffer(state["replay"]["size"], obs_dim, act_dim, n, args.horizon, "cpu")
     replay.load_state_dict(state["replay"])
@@ -149,8 +173,10 @@ def main(argv=None):
     terms["adapter L2"] = penalty
     if decoder is not None:
         terms["reward decoder (--decoder-coef)"] = decoder
-    split = {name: torch.cat([g.flatten() for g in torch.autograd.grad(term, encoder_params, retain_graph=True)]).norm()
-             for name, term in terms.items()}
+    split = {
+        name: torch.cat([g.flatten() for g in torch.autograd.grad(term, encoder_params, retain_graph=True)]).norm()
+        for name, term in terms.items()
+    }
     print("context-encoder gradient norm by weighted loss term: " + ", ".join(f"{k} {v:.2e}" for k, v in split.items()))
 
 

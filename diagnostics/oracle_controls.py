@@ -17,6 +17,7 @@ it is somewhere else. It is the Oracle's counterpart of context_controls.py (CLA
 Nothing finished is lost on interruption: with --json each finished environment is written there (atomically), and
 the same command run again takes up the environments that a run on the same weights and settings finished.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -72,8 +73,15 @@ def arm_return(loaded, plan, env_id: int, told_id: int, eval_episodes: int) -> f
     weights, state = model.base_weights(), {"mean": None}
 
     def act(obs, first_step):
-        action, state["mean"] = plan(model, weights, torch.as_tensor(obs, dtype=torch.float32),
-                                     None if first_step else state["mean"], discount, args, explore=False)
+        action, state["mean"] = plan(
+            model,
+            weights,
+            torch.as_tensor(obs, dtype=torch.float32),
+            None if first_step else state["mean"],
+            discount,
+            args,
+            explore=False,
+        )
         return action.numpy()
 
     torch.manual_seed(args.seed + 40_000 + env_id)  # both arms of env_id draw the same planner noise
@@ -81,8 +89,9 @@ def arm_return(loaded, plan, env_id: int, told_id: int, eval_episodes: int) -> f
     return float(np.mean([r["return"] for r in records]))
 
 
-def controls(path: str, swap_offset: int, env_ids, eval_episodes: int, plan=None, json_path: str | None = None,
-             log=print) -> dict:
+def controls(
+    path: str, swap_offset: int, env_ids, eval_episodes: int, plan=None, json_path: str | None = None, log=print
+) -> dict:
     """{"checkpoint", "family", "identity" (weights digest and settings), "envs": {j: {"told": k, "own": return,
     "swapped": return}}}; with json_path
     each finished environment is saved, and a saved run of the same weights and settings is taken up."""
@@ -95,8 +104,12 @@ def controls(path: str, swap_offset: int, env_ids, eval_episodes: int, plan=None
         raise SystemExit(f"error: --env-ids {bad} outside the {n} environments of {args.family}")
     if swap_offset % n == 0:
         raise SystemExit(f"error: --swap-offset {swap_offset} tells every environment its own parameter ({n} environments)")
-    identity = {"weights": oracle.weights_digest(model), "swap_offset": swap_offset, "eval_episodes": eval_episodes,
-                "compiled": bool(getattr(plan, "is_compiled", False))}
+    identity = {
+        "weights": oracle.weights_digest(model),
+        "swap_offset": swap_offset,
+        "eval_episodes": eval_episodes,
+        "compiled": bool(getattr(plan, "is_compiled", False)),
+    }
     result = {"checkpoint": path, "family": args.family, "identity": identity, "envs": {}}
     if json_path and os.path.exists(json_path):
         with open(json_path) as f:
@@ -112,7 +125,9 @@ def controls(path: str, swap_offset: int, env_ids, eval_episodes: int, plan=None
         k = (j + swap_offset) % n
         own, swapped = (arm_return(loaded, plan, j, told, eval_episodes) for told in (j, k))
         result["envs"][j] = {"told": k, "own": own, "swapped": swapped}
-        log(f"env {j} (parameter {shown(args.family, j)}): own {own:.1f}, told env {k}'s {shown(args.family, k)}: {swapped:.1f}")
+        log(
+            f"env {j} (parameter {shown(args.family, j)}): own {own:.1f}, told env {k}'s {shown(args.family, k)}: {swapped:.1f}"
+        )
         if json_path:  # atomic: an interruption never leaves half a file
             with open(json_path + ".tmp", "w") as f:
                 json.dump(result, f, indent=1)
@@ -123,27 +138,42 @@ def controls(path: str, swap_offset: int, env_ids, eval_episodes: int, plan=None
 
 def report(result: dict) -> str:
     family, envs, episodes = result["family"], result["envs"], result["identity"]["eval_episodes"]
-    lines = [f"# Oracle told another environment's parameter: {result['checkpoint']}", "",
-             f"Exp 2 offline at 0 adaptation steps ({episodes} episode{'s' * (episodes != 1)} per environment "
-             f"and arm); swap offset {result['identity']['swap_offset']}; 95% t-CIs over the {len(envs)} environments.", "",
-             "| env j | its parameter | told env k's | own return | told k's | own - told k's |", "|---|---|---|---|---|---|"]
+    lines = [
+        f"# Oracle told another environment's parameter: {result['checkpoint']}",
+        "",
+        f"Exp 2 offline at 0 adaptation steps ({episodes} episode{'s' * (episodes != 1)} per environment "
+        f"and arm); swap offset {result['identity']['swap_offset']}; 95% t-CIs over the {len(envs)} environments.",
+        "",
+        "| env j | its parameter | told env k's | own return | told k's | own - told k's |",
+        "|---|---|---|---|---|---|",
+    ]
     for j, row in envs.items():
-        lines.append(f"| {j} | {shown(family, j)} | {shown(family, row['told'])} | "
-                     f"{row['own']:.1f} | {row['swapped']:.1f} | {row['own'] - row['swapped']:+.1f} |")
+        lines.append(
+            f"| {j} | {shown(family, j)} | {shown(family, row['told'])} | "
+            f"{row['own']:.1f} | {row['swapped']:.1f} | {row['own'] - row['swapped']:+.1f} |"
+        )
     own, swapped = [r["own"] for r in envs.values()], [r["swapped"] for r in envs.values()]
     cells = [mean_ci(v) for v in (own, swapped, np.subtract(own, swapped))]
-    lines.append("| mean ± CI | | | " + " | ".join(f"{m:.1f} ± {c:.1f}" for m, c in cells[:2]) + f" | {cells[2][0]:+.1f} ± {cells[2][1]:.1f} |")
+    lines.append(
+        "| mean ± CI | | | "
+        + " | ".join(f"{m:.1f} ± {c:.1f}" for m, c in cells[:2])
+        + f" | {cells[2][0]:+.1f} ± {cells[2][1]:.1f} |"
+    )
     return "\n".join(lines)
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint")
-    parser.add_argument("--swap-offset", type=int, default=1, help="environment j is told the parameter of environment (j + this) mod n")
+    parser.add_argument(
+        "--swap-offset", type=int, default=1, help="environment j is told the parameter of environment (j + this) mod n"
+    )
     parser.add_argument("--env-ids", type=int, nargs="+", help="only these test environments (default: every one)")
     parser.add_argument("--eval-episodes", type=int, default=2, help="offline episodes per environment and arm")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    parser.add_argument("--compile", choices=["on", "off"], default="off", help="on: torch.compile the MPPI planner (long evaluations)")
+    parser.add_argument(
+        "--compile", choices=["on", "off"], default="off", help="on: torch.compile the MPPI planner (long evaluations)"
+    )
     parser.add_argument("--out", help="also write the markdown table to this file")
     parser.add_argument("--json", help="also write the result here, environment by environment; a rerun takes it up")
     cli = parser.parse_args(argv)
@@ -151,8 +181,15 @@ def main(argv=None):
         parser.error("--eval-episodes must be at least 1")
     torch.set_num_threads(cli.threads)
     plan = oracle.compiled(oracle.plan, torch.device("cpu")) if cli.compile == "on" else oracle.plan
-    result = controls(cli.checkpoint, cli.swap_offset, cli.env_ids, cli.eval_episodes, plan, cli.json,
-                      log=lambda line: print(line, file=sys.stderr, flush=True))
+    result = controls(
+        cli.checkpoint,
+        cli.swap_offset,
+        cli.env_ids,
+        cli.eval_episodes,
+        plan,
+        cli.json,
+        log=lambda line: print(line, file=sys.stderr, flush=True),
+    )
     text = report(result)
     print(text)
     if cli.out:

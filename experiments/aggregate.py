@@ -17,6 +17,7 @@ Runs that failed, are still running (their run.lock is held), died, or lack eval
 never dropped silently; so are runs whose events repeat a step (a resume logged without purge_step), of
 which the last value counts.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -33,9 +34,9 @@ import scipy.stats
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from common.evaluation import mean_ci  # noqa: E402
 from experiments.archive import archive_sweep, read_scalars  # noqa: E402
 from experiments.sweep import CONTROLS, SIZE_RANKS, run_is_live  # noqa: E402
-from common.evaluation import mean_ci  # noqa: E402
 
 GROUP_KEYS = ("method", "family", "size", "rank")
 SUCCESS_FAMILIES = ("reach", "push")  # Meta-World reports success; elsewhere the scripts log a constant 0
@@ -122,8 +123,18 @@ def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str,
             seeds = sorted(by_seed)
             mean, half = mean_ci([by_seed[s] for s in seeds])
             # each seed's value beside the mean: RESULTS quotes them, and they are what a new seed is compared with
-            rows.append({**dict(zip(GROUP_KEYS, key)), "metric": metric, "x": x, "n": len(seeds), "mean": mean, "ci95": half,
-                         "seeds": ",".join(map(str, seeds)), "per_seed": ",".join(f"{by_seed[s]:.10g}" for s in seeds)})
+            rows.append(
+                {
+                    **dict(zip(GROUP_KEYS, key)),
+                    "metric": metric,
+                    "x": x,
+                    "n": len(seeds),
+                    "mean": mean,
+                    "ci95": half,
+                    "seeds": ",".join(map(str, seeds)),
+                    "per_seed": ",".join(f"{by_seed[s]:.10g}" for s in seeds),
+                }
+            )
         for metric in reported_keys(key[GROUP_KEYS.index("family")]):
             by_step = defaultdict(list)
             for run in members:
@@ -131,8 +142,16 @@ def summarize(runs: list[dict]) -> tuple[list[dict], list[dict], list[tuple[str,
                     by_step[step].append(value)
             for step, values in sorted(by_step.items()):
                 mean, half = mean_ci(values)
-                curves.append({**dict(zip(GROUP_KEYS, key)), "metric": f"online_{metric}",
-                               "step": step, "n": len(values), "mean": mean, "ci95": half})
+                curves.append(
+                    {
+                        **dict(zip(GROUP_KEYS, key)),
+                        "metric": f"online_{metric}",
+                        "step": step,
+                        "n": len(values),
+                        "mean": mean,
+                        "ci95": half,
+                    }
+                )
     return rows, curves, problems
 
 
@@ -193,9 +212,21 @@ def training_curves(runs: list[dict], window: int = 2500) -> list[dict]:
         for end, values in sorted(by_window["return"].items()):
             mean, half = mean_ci(values)
             success = by_window.get("success", {}).get(end)
-            rows.append({"method": method, "family": family, "train_env": env_id, "size": size, "step": end, "n": len(values),
-                         "mean": mean, "ci95": half, "success": sum(success) / len(success) if success else math.nan,
-                         "random_policy": random_return, "seeds": ",".join(str(r["seed"]) for r in members)})
+            rows.append(
+                {
+                    "method": method,
+                    "family": family,
+                    "train_env": env_id,
+                    "size": size,
+                    "step": end,
+                    "n": len(values),
+                    "mean": mean,
+                    "ci95": half,
+                    "success": sum(success) / len(success) if success else math.nan,
+                    "random_policy": random_return,
+                    "seeds": ",".join(str(r["seed"]) for r in members),
+                }
+            )
     return rows
 
 
@@ -205,13 +236,17 @@ def ci_cell(half: float) -> str:
 
 
 def training_markdown(rows: list[dict]) -> str:
-    lines = ["| method | family | env | size | agent steps up to | seeds | mean training-episode return | 95% CI | x random policy | success |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| method | family | env | size | agent steps up to | seeds | mean training-episode return | 95% CI | x random policy | success |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         ratio = r["mean"] / r["random_policy"] if r["random_policy"] > 0 else float("nan")
         success = "" if math.isnan(r["success"]) else f"{r['success']:.2f}"
-        lines.append(f"| {r['method']} | {r['family']} | {r['train_env']} | {r['size']} | {r['step']} | {r['n']} | {r['mean']:.1f} | "
-                     f"{ci_cell(r['ci95'])} | {ratio:.1f} (random {r['random_policy']:.1f}) | {success} |")
+        lines.append(
+            f"| {r['method']} | {r['family']} | {r['train_env']} | {r['size']} | {r['step']} | {r['n']} | {r['mean']:.1f} | "
+            f"{ci_cell(r['ci95'])} | {ratio:.1f} (random {r['random_policy']:.1f}) | {success} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -249,18 +284,37 @@ def controls_rows(runs: list[dict]) -> list[dict]:
         for (name, protocol, arm, episodes), (per_seed, per_pair) in quantities.items():
             mean, half = mean_ci(per_seed)
             _, pair_half = mean_ci(per_pair)
-            rows.append({"method": method, "family": family, "size": size, "rank": rank, "quantity": name, "protocol": protocol, "arm": arm,
-                         "context_episodes": episodes, "n_seeds": len(per_seed), "mean": mean, "ci95_seeds": half,
-                         "n_pairs": len(per_pair), "ci95_pairs": pair_half, "seeds": ",".join(str(seed) for seed, _ in members)})
+            rows.append(
+                {
+                    "method": method,
+                    "family": family,
+                    "size": size,
+                    "rank": rank,
+                    "quantity": name,
+                    "protocol": protocol,
+                    "arm": arm,
+                    "context_episodes": episodes,
+                    "n_seeds": len(per_seed),
+                    "mean": mean,
+                    "ci95_seeds": half,
+                    "n_pairs": len(per_pair),
+                    "ci95_pairs": pair_half,
+                    "seeds": ",".join(str(seed) for seed, _ in members),
+                }
+            )
     return rows
 
 
 def controls_markdown(rows: list[dict]) -> str:
-    lines = ["| method | family | size | rank | quantity | seeds | mean return | 95% CI across seeds | (seed, env) pairs | 95% CI across pairs |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| method | family | size | rank | quantity | seeds | mean return | 95% CI across seeds | (seed, env) pairs | 95% CI across pairs |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        lines.append(f"| {r['method']} | {r['family']} | {r['size']} | {r['rank']} | {r['quantity']} | {r['n_seeds']} | {r['mean']:.1f} | "
-                     f"{ci_cell(r['ci95_seeds'])} | {r['n_pairs']} | {ci_cell(r['ci95_pairs'])} |")
+        lines.append(
+            f"| {r['method']} | {r['family']} | {r['size']} | {r['rank']} | {r['quantity']} | {r['n_seeds']} | {r['mean']:.1f} | "
+            f"{ci_cell(r['ci95_seeds'])} | {r['n_pairs']} | {ci_cell(r['ci95_pairs'])} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -308,10 +362,14 @@ def _by_metric(members: list[dict]) -> dict:
 
 def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]:
     """The five claims the issue names, each with its comparisons: {"claim", "verdict", "evidence": [lines]}."""
+
     def runs_of(method, family, metric, x=None, size=None, rank=None):
         """{seed: value} of the one group that matches (size/rank None: any, if only one group matches)."""
-        found = [v.get((metric, x), {}) for (m, f, s, r), v in values.items()
-                 if m == method and f == family and size in (None, s) and rank in (None, r)]
+        found = [
+            v.get((metric, x), {})
+            for (m, f, s, r), v in values.items()
+            if m == method and f == family and size in (None, s) and rank in (None, r)
+        ]
         return found[0] if len(found) == 1 else {}
 
     def compare(label, a: dict, b: dict, track_of=None, paired=False):
@@ -328,8 +386,12 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
         margin = None if track_of is None else TRACK_MARGIN * abs(sum(track_of.values()) / len(track_of))
         verdict = judge(low, high, margin)
         bound = "" if margin is None else f", margin {margin:.1f}"
-        return {"label": label, "verdict": verdict, "n": min(len(a), len(b)),
-                "text": f"{label}: {mean:+.1f} [{low:+.1f}, {high:+.1f}] ({n}{bound}): {verdict}"}
+        return {
+            "label": label,
+            "verdict": verdict,
+            "n": min(len(a), len(b)),
+            "text": f"{label}: {mean:+.1f} [{low:+.1f}, {high:+.1f}] ({n}{bound}): {verdict}",
+        }
 
     results = []
     exp12_families = sorted({f for (m, f, s, r) in values if m in ("dr", "st", "oracle")})
@@ -337,46 +399,86 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
     for family in exp12_families:
         claw = runs_of("claw", family, "online_return")
         oracle = runs_of("oracle", family, "online_return")
-        parts += [compare(f"{family} Exp 1 return, CLAW - DR", claw, runs_of("dr", family, "online_return")),
-                  compare(f"{family} Exp 1 return, CLAW - ST", claw, runs_of("st", family, "online_return")),
-                  compare(f"{family} Exp 1 return, CLAW - Oracle (tracks)", claw, oracle, track_of=oracle)]
+        parts += [
+            compare(f"{family} Exp 1 return, CLAW - DR", claw, runs_of("dr", family, "online_return")),
+            compare(f"{family} Exp 1 return, CLAW - ST", claw, runs_of("st", family, "online_return")),
+            compare(f"{family} Exp 1 return, CLAW - Oracle (tracks)", claw, oracle, track_of=oracle),
+        ]
     no_exp12 = [{"label": "exp12", "verdict": "missing", "n": 0, "text": "no finished DR, ST or Oracle run"}]
     results.append(("CLAW tracks the oracle and beats DR and ST online (Exp 1)", parts or no_exp12))
     parts = []
     for family in exp12_families:
         claw = runs_of("claw", family, "offline_return", 0)
         for method in ("dr", "st", "oracle"):
-            sweep = {x: v for (m, f, s, r), groups in values.items() if m == method and f == family
-                     for (metric, x), v in groups.items() if metric == "offline_return"}
+            sweep = {
+                x: v
+                for (m, f, s, r), groups in values.items()
+                if m == method and f == family
+                for (metric, x), v in groups.items()
+                if metric == "offline_return"
+            }
             if len(sweep) < 2:
                 parts.append(compare(f"{family} Exp 2 {method.upper()}", {}, {}))
                 continue
             most = max(sweep)
             peak = max((x for x in sweep if x != most), key=lambda x: sum(sweep[x].values()) / len(sweep[x]))
-            parts.append(compare(f"{family} Exp 2 {method.upper()} collapses: return at {peak} steps (its best before {most}) - at {most}",
-                                 sweep[peak], sweep[most], paired=True))
+            parts.append(
+                compare(
+                    f"{family} Exp 2 {method.upper()} collapses: return at {peak} steps (its best before {most}) - at {most}",
+                    sweep[peak],
+                    sweep[most],
+                    paired=True,
+                )
+            )
             if method != "oracle":
                 parts.append(compare(f"{family} Exp 2 CLAW (one pass) - {method.upper()} at {most} steps", claw, sweep[most]))
     results.append(("Gradient methods collapse with many offline steps, CLAW does not (Exp 2)", parts or no_exp12))
     claw = runs_of("claw", "cheetah_walker", "online_return", size=exp4_size, rank=exp4_rank)
-    results.append((f"CLAW beats FiLM and Concat at mid sizes (Exp 3/4, size {exp4_size})",
-                    [compare(f"cheetah_walker return, CLAW r{exp4_rank} - {m}", claw, runs_of(m, "cheetah_walker", "online_return", size=exp4_size))
-                     for m in ("film", "concat")]))
-    ranks = [(r, v) for (m, f, s, r), groups in values.items() if m == "claw" and f == "cheetah_walker" and s == exp4_size
-             for v in groups.get(("online_return", None), {}).values()]
+    results.append(
+        (
+            f"CLAW beats FiLM and Concat at mid sizes (Exp 3/4, size {exp4_size})",
+            [
+                compare(
+                    f"cheetah_walker return, CLAW r{exp4_rank} - {m}",
+                    claw,
+                    runs_of(m, "cheetah_walker", "online_return", size=exp4_size),
+                )
+                for m in ("film", "concat")
+            ],
+        )
+    )
+    ranks = [
+        (r, v)
+        for (m, f, s, r), groups in values.items()
+        if m == "claw" and f == "cheetah_walker" and s == exp4_size
+        for v in groups.get(("online_return", None), {}).values()
+    ]
     if len({r for r, _ in ranks}) >= 3:
         fit = scipy.stats.linregress([math.log2(r) for r, _ in ranks], [v for _, v in ranks])
         half = fit.stderr * scipy.stats.t.ppf(0.975, len(ranks) - 2)
         verdict = judge(fit.slope - half, fit.slope + half)
-        part = {"label": "slope", "verdict": verdict, "n": len(ranks) // len({r for r, _ in ranks}),
-                "text": f"cheetah_walker return per doubling of rank (least squares over {len(ranks)} runs, ranks "
-                        f"{sorted({r for r, _ in ranks})}): {fit.slope:+.1f} [{fit.slope - half:+.1f}, {fit.slope + half:+.1f}]: {verdict}"}
+        part = {
+            "label": "slope",
+            "verdict": verdict,
+            "n": len(ranks) // len({r for r, _ in ranks}),
+            "text": f"cheetah_walker return per doubling of rank (least squares over {len(ranks)} runs, ranks "
+            f"{sorted({r for r, _ in ranks})}): {fit.slope:+.1f} [{fit.slope - half:+.1f}, {fit.slope + half:+.1f}]: {verdict}",
+        }
     else:
         part = {"label": "slope", "verdict": "missing", "text": "return vs rank: fewer than 3 ranks finished"}
     results.append((f"Return rises with LoRA rank (Exp 4, size {exp4_size})", [part]))
-    results.append(("Joint training beats the post-hoc hypernetwork (Exp 5, Cheetah)",
-                    [compare(f"cheetah return, CLAW r{exp4_rank} - post-hoc", runs_of("claw", "cheetah_walker", "online_return_env0", size=exp4_size, rank=exp4_rank),
-                             runs_of("posthoc", "cheetah_walker", "online_return_env0", size=exp4_size))]))
+    results.append(
+        (
+            "Joint training beats the post-hoc hypernetwork (Exp 5, Cheetah)",
+            [
+                compare(
+                    f"cheetah return, CLAW r{exp4_rank} - post-hoc",
+                    runs_of("claw", "cheetah_walker", "online_return_env0", size=exp4_size, rank=exp4_rank),
+                    runs_of("posthoc", "cheetah_walker", "online_return_env0", size=exp4_size),
+                )
+            ],
+        )
+    )
     out = []
     for claim, parts in results:
         verdicts = {p["verdict"] for p in parts}
@@ -393,8 +495,11 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
 
 
 def claims_markdown(results: list[dict]) -> str:
-    lines = [f"Differences of means with 95% CIs (Welch's t across seeds; paired t where both values come from the same runs). "
-             f"'tracks': within {TRACK_MARGIN:.0%} of the oracle's return.", ""]
+    lines = [
+        f"Differences of means with 95% CIs (Welch's t across seeds; paired t where both values come from the same runs). "
+        f"'tracks': within {TRACK_MARGIN:.0%} of the oracle's return.",
+        "",
+    ]
     for r in results:
         lines += [f"- **{r['claim']}: {r['verdict']}**"] + [f"  - {line}" for line in r["evidence"]]
     return "\n".join(lines) + "\n"
@@ -410,12 +515,17 @@ def write_csv(path: str, rows: list[dict]):
 
 
 def markdown(rows: list[dict], problems: list[tuple[str, str]], duplicated: list[tuple[str, list]] = ()) -> str:
-    lines = ["| method | family | size | rank | metric | x | seeds | mean | 95% CI | per seed |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| method | family | size | rank | metric | x | seeds | mean | 95% CI | per seed |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         x = "" if r["x"] is None else r["x"]
         per_seed = ", ".join(f"s{seed}: {float(v):.1f}" for seed, v in zip(r["seeds"].split(","), r["per_seed"].split(",")))
-        lines.append(f"| {r['method']} | {r['family']} | {r['size']} | {r['rank']} | {r['metric']} | {x} | {r['n']} | "
-                     f"{r['mean']:.1f} | {ci_cell(r['ci95'])} | {per_seed} |")
+        lines.append(
+            f"| {r['method']} | {r['family']} | {r['size']} | {r['rank']} | {r['metric']} | {x} | {r['n']} | "
+            f"{r['mean']:.1f} | {ci_cell(r['ci95'])} | {per_seed} |"
+        )
     if problems:
         lines += ["", "Runs not aggregated:", ""] + [f"- `{os.path.basename(d)}`: {why}" for d, why in problems]
     if duplicated:
@@ -426,12 +536,24 @@ def markdown(rows: list[dict], problems: list[tuple[str, str]], duplicated: list
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("roots", nargs="+", metavar="root",
-                        help="sweep directories or archives (experiments/archive.py), e.g. runs/sweeps/cpu; the tables go to the first")
-    parser.add_argument("--archive", default=None, metavar="DIR",
-                        help="also read this archive, and first archive there every finished run of the roots (e.g. results/learn/runs)")
-    parser.add_argument("--exp4-size", default="F", choices=list(SIZE_RANKS),
-                        help="model size of the Exp 3/4/5 claims (rank: the size's Exp 3 rank); the cpu scale's is H")
+    parser.add_argument(
+        "roots",
+        nargs="+",
+        metavar="root",
+        help="sweep directories or archives (experiments/archive.py), e.g. runs/sweeps/cpu; the tables go to the first",
+    )
+    parser.add_argument(
+        "--archive",
+        default=None,
+        metavar="DIR",
+        help="also read this archive, and first archive there every finished run of the roots (e.g. results/learn/runs)",
+    )
+    parser.add_argument(
+        "--exp4-size",
+        default="F",
+        choices=list(SIZE_RANKS),
+        help="model size of the Exp 3/4/5 claims (rank: the size's Exp 3 rank); the cpu scale's is H",
+    )
     cli = parser.parse_args(argv)
     cli.root = cli.roots[0]
     if cli.archive:
@@ -441,13 +563,18 @@ def main(argv=None):
     runs = load_runs(cli.roots)
     if not runs:
         raise SystemExit(f"error: no run.json under {' '.join(map(repr, cli.roots))}; run experiments/sweep.py first")
-    print(f"read {len(runs)} runs; the training curves roll out a random policy per family (minutes on Walker)",
-          file=sys.stderr, flush=True)
+    print(
+        f"read {len(runs)} runs; the training curves roll out a random policy per family (minutes on Walker)",
+        file=sys.stderr,
+        flush=True,
+    )
     rows, curves, problems = summarize(runs)
     write_csv(os.path.join(cli.root, "summary.csv"), rows)
     write_csv(os.path.join(cli.root, "curves.csv"), curves)
-    for name, table_rows, to_markdown in (("training_curves", training_curves(runs), training_markdown),
-                                          ("controls", controls_rows(runs), controls_markdown)):
+    for name, table_rows, to_markdown in (
+        ("training_curves", training_curves(runs), training_markdown),
+        ("controls", controls_rows(runs), controls_markdown),
+    ):
         if table_rows:
             write_csv(os.path.join(cli.root, f"{name}.csv"), table_rows)
             with open(os.path.join(cli.root, f"{name}.md"), "w") as f:

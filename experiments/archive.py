@@ -21,6 +21,7 @@ launching: the run resumes from its last checkpoint. Commit DIR before the machi
     python experiments/archive.py /work/sweeps/learn results/learn/runs   # archive every finished run of a sweep
     python experiments/archive.py /work/sweeps/learn results/learn/runs --carry results/learn/carry   # and carry the others
 """
+
 from __future__ import annotations
 
 import argparse
@@ -30,7 +31,8 @@ import os
 import shutil
 
 SCALARS = "scalars.json"
-KEPT = ("stdout.log", "context_effect.md", "inspect_adapters.txt", "controls.json", "controls.md")  # copied as they are, where the run wrote them
+# copied as they are, where the run wrote them
+KEPT = ("stdout.log", "context_effect.md", "inspect_adapters.txt", "controls.json", "controls.md")
 WEIGHTS = "checkpoint.pt"  # in the archive: the run's checkpoint less what only training resumes from
 TRAINING_ONLY = ("replay", "optimizers")
 NOT_CARRIED = ("run.lock",)  # and the half-written files: *.tmp, *.partial
@@ -107,7 +109,9 @@ def carry_run(run_dir: str, carry: str) -> str:
     target = os.path.join(carry, os.path.basename(os.path.normpath(run_dir)))
     staging = target + ".tmp"
     shutil.rmtree(staging, ignore_errors=True)
-    shutil.copytree(run_dir, staging, ignore=lambda _, names: [n for n in names if n in NOT_CARRIED or n.endswith((".tmp", ".partial"))])
+    shutil.copytree(
+        run_dir, staging, ignore=lambda _, names: [n for n in names if n in NOT_CARRIED or n.endswith((".tmp", ".partial"))]
+    )
     replace_dir(staging, target)
     return target
 
@@ -158,8 +162,12 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("root", help="sweep directory, e.g. /work/sweeps/learn")
     parser.add_argument("archive", help="archive directory, e.g. results/learn/runs")
-    parser.add_argument("--carry", default=None, metavar="DIR",
-                        help="also copy each unfinished run's directory to DIR (e.g. results/learn/carry), as sweep.py --carry does")
+    parser.add_argument(
+        "--carry",
+        default=None,
+        metavar="DIR",
+        help="also copy each unfinished run's directory to DIR (e.g. results/learn/carry), as sweep.py --carry does",
+    )
     cli = parser.parse_args(argv)
     if not os.path.isdir(cli.root):
         raise SystemExit(f"archive.py: error: {cli.root!r} is not a directory")

@@ -12,6 +12,7 @@ training.png  training-episode return vs agent steps: ST per embodiment (experim
               Exp 1/2 per family, beside the random policy's return
 A figure whose runs are missing is skipped with a message. Bands and error bars are 95% t-CIs.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -30,10 +31,26 @@ import matplotlib.ticker  # noqa: E402
 from experiments.aggregate import controls_rows, load_runs, summarize, training_curves  # noqa: E402
 from experiments.sweep import SIZE_RANKS  # noqa: E402
 
-COLORS = {"claw": "tab:red", "dr": "tab:blue", "st": "tab:green", "oracle": "black", "film": "tab:purple",
-          "concat": "tab:orange", "posthoc": "tab:gray", "claw_decoder": "tab:pink"}
-LABELS = {"claw": "CLAW", "dr": "DR", "st": "ST", "oracle": "Oracle", "film": "FiLM", "concat": "Concat", "posthoc": "Post-hoc",
-          "claw_decoder": "CLAW + reward decoder (not the paper's)"}
+COLORS = {
+    "claw": "tab:red",
+    "dr": "tab:blue",
+    "st": "tab:green",
+    "oracle": "black",
+    "film": "tab:purple",
+    "concat": "tab:orange",
+    "posthoc": "tab:gray",
+    "claw_decoder": "tab:pink",
+}
+LABELS = {
+    "claw": "CLAW",
+    "dr": "DR",
+    "st": "ST",
+    "oracle": "Oracle",
+    "film": "FiLM",
+    "concat": "Concat",
+    "posthoc": "Post-hoc",
+    "claw_decoder": "CLAW + reward decoder (not the paper's)",
+}
 METAWORLD = ("reach", "push")
 
 
@@ -49,8 +66,10 @@ def _interval(metric, rows, ci_key="ci95"):
     where a row has no CI."""
     top = 1.0 if metric.endswith("success") else math.inf
     half = [_ci(r[ci_key]) for r in rows]
-    return ([math.nan if math.isnan(h) else max(0.0, r["mean"] - h) for r, h in zip(rows, half)],
-            [math.nan if math.isnan(h) else min(top, r["mean"] + h) for r, h in zip(rows, half)])
+    return (
+        [math.nan if math.isnan(h) else max(0.0, r["mean"] - h) for r, h in zip(rows, half)],
+        [math.nan if math.isnan(h) else min(top, r["mean"] + h) for r, h in zip(rows, half)],
+    )
 
 
 def _yerr(metric, rows, ci_key="ci95"):
@@ -92,7 +111,9 @@ def save_panel_grid(families, prefix, draw, path):
     """One subplot per `panels` entry; draw(ax, family, metric) fills it; one legend, below the grid."""
     grid = panels(families, prefix)
     # constrained layout reserves room for an "outside" figure legend, so long labels no longer squeeze the panels
-    fig, axes = plt.subplots(len(grid), len(families), figsize=(4.5 * len(families), 3.5 * len(grid) + 0.8), squeeze=False, layout="constrained")
+    fig, axes = plt.subplots(
+        len(grid), len(families), figsize=(4.5 * len(families), 3.5 * len(grid) + 0.8), squeeze=False, layout="constrained"
+    )
     for ax_row, panel_row in zip(axes, grid):
         for ax, panel in zip(ax_row, panel_row):
             if panel is None:
@@ -105,7 +126,8 @@ def save_panel_grid(families, prefix, draw, path):
     for ax in axes.flat:
         for handle, name in zip(*ax.get_legend_handles_labels()):
             handles.setdefault(name, handle)
-    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncols=len(families), fontsize="small")  # outside: bands fill the panels
+    # outside: bands fill the panels
+    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncols=len(families), fontsize="small")
     fig.savefig(path, dpi=120, bbox_inches="tight")  # "tight" keeps a legend wider than the panels whole
 
 
@@ -138,8 +160,15 @@ def figure_exp2(rows, curves, out) -> str | None:
             points = select(rows, family=family, method=method, metric=metric)
             if points:
                 steps += [p["x"] for p in points]
-                ax.errorbar([p["x"] for p in points], [p["mean"] for p in points], yerr=_yerr(metric, points),
-                            color=COLORS[method], label=LABELS[method], marker="o", capsize=3)
+                ax.errorbar(
+                    [p["x"] for p in points],
+                    [p["mean"] for p in points],
+                    yerr=_yerr(metric, points),
+                    color=COLORS[method],
+                    label=LABELS[method],
+                    marker="o",
+                    capsize=3,
+                )
         for method in ("claw", "claw_decoder"):  # one hypernet pass each: a band
             for p in select(rows, family=family, method=method, metric=metric):
                 ax.axhline(p["mean"], color=COLORS[method], label=f"{LABELS[method]}, 1 hypernet pass")
@@ -155,7 +184,9 @@ def figure_exp2(rows, curves, out) -> str | None:
 
 
 def figure_exp3(rows, curves, out) -> str | None:
-    cw = [r for r in select(rows, family="cheetah_walker", metric="online_return") if r["method"] in ("claw", "film", "concat")]
+    cw = [
+        r for r in select(rows, family="cheetah_walker", metric="online_return") if r["method"] in ("claw", "film", "concat")
+    ]
     cw = [r for r in cw if r["method"] != "claw" or r["rank"] == SIZE_RANKS[r["size"]]]  # Exp 3 ties rank to size
     if len({r["size"] for r in cw}) < 2:
         return "exp3: fewer than two model sizes on cheetah_walker"
@@ -165,8 +196,15 @@ def figure_exp3(rows, curves, out) -> str | None:
         points = sorted((world_model_sizes(r["size"], r["rank"])[0], r) for r in cw if r["method"] == method)
         if not points:
             continue
-        ax.errorbar([p for p, _ in points], [r["mean"] for _, r in points], yerr=_yerr("return", [r for _, r in points]),
-                    color=COLORS[method], label=LABELS[method], marker="o", capsize=3)
+        ax.errorbar(
+            [p for p, _ in points],
+            [r["mean"] for _, r in points],
+            yerr=_yerr("return", [r for _, r in points]),
+            color=COLORS[method],
+            label=LABELS[method],
+            marker="o",
+            capsize=3,
+        )
         ratio = [(p, r["mean"] / claw_by_size[r["size"]]) for p, r in points if claw_by_size.get(r["size"])]
         if ratio:
             ax_ratio.plot(*zip(*ratio), color=COLORS[method], marker="o", label=LABELS[method])
@@ -193,7 +231,9 @@ def figure_exp4(rows, curves, out) -> str | None:
     ranks = [r["rank"] for r in claw]
     percents = [100 * world_model_sizes(size, r["rank"])[2] / world_model for r in claw]
     for ax, x in ((ax_rank, ranks), (ax_pct, percents)):
-        ax.errorbar(x, [r["mean"] for r in claw], yerr=_yerr("return", claw), color=COLORS["claw"], marker="o", capsize=3, label="CLAW")
+        ax.errorbar(
+            x, [r["mean"] for r in claw], yerr=_yerr("return", claw), color=COLORS["claw"], marker="o", capsize=3, label="CLAW"
+        )
     for method in ("film", "concat"):
         for r in select(cw, method=method, size=size):
             ax_rank.axhline(r["mean"], color=COLORS[method], linestyle="--", label=LABELS[method])
@@ -202,9 +242,19 @@ def figure_exp4(rows, curves, out) -> str | None:
                 ax_rank.axhspan(lower, upper, color=COLORS[method], alpha=0.1)
             if method == "film":  # FiLM spends a scale and a shift per world-model hidden feature
                 film_percent = 100 * film_parameters(size) / world_model
-                ax_pct.errorbar([film_percent], [r["mean"]], yerr=_yerr("return", [r]), color=COLORS[method], marker="s", capsize=3, label="FiLM")
+                ax_pct.errorbar(
+                    [film_percent],
+                    [r["mean"]],
+                    yerr=_yerr("return", [r]),
+                    color=COLORS[method],
+                    marker="s",
+                    capsize=3,
+                    label="FiLM",
+                )
     drawn = claw + [r for r in select(cw, size=size) if r["method"] in ("film", "concat")]  # not post-hoc: Exp 5's
-    ax_rank.set(xscale="log", xlabel="LoRA rank", ylabel="episode return", title=f"Cheetah/Walker, size {size}, {_seeds(drawn)}")
+    ax_rank.set(
+        xscale="log", xlabel="LoRA rank", ylabel="episode return", title=f"Cheetah/Walker, size {size}, {_seeds(drawn)}"
+    )
     ax_pct.set(xscale="log", xlabel="adapter size (% of world model)", ylabel="episode return")
     for ax in (ax_rank, ax_pct):  # plain numbers at the data points, not 4x10^0 minor ticks
         ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
@@ -223,8 +273,11 @@ def film_parameters(size: str) -> int:
     import claw_tdmpc2 as claw
 
     model = claw.WorldModel(24, 6, size, claw.Args())
-    return sum(2 * getattr(model, name).weights[i].shape[:-1].numel()
-               for name in model.WORLD_MODEL_MODULES for i in range(getattr(model, name).num_normed))
+    return sum(
+        2 * getattr(model, name).weights[i].shape[:-1].numel()
+        for name in model.WORLD_MODEL_MODULES
+        for i in range(getattr(model, name).num_normed)
+    )
 
 
 def figure_exp5(rows, curves, out) -> str | None:
@@ -236,8 +289,13 @@ def figure_exp5(rows, curves, out) -> str | None:
     bars = [("CLAW (joint)", joint[0], COLORS["claw"])] if joint else []
     bars.append(("Post-hoc", posthoc[0], COLORS["posthoc"]))
     fig, ax = plt.subplots(figsize=(3.5, 3.5))
-    ax.bar([b[0] for b in bars], [b[1]["mean"] for b in bars], yerr=_yerr("return", [b[1] for b in bars]),
-           color=[b[2] for b in bars], capsize=4)
+    ax.bar(
+        [b[0] for b in bars],
+        [b[1]["mean"] for b in bars],
+        yerr=_yerr("return", [b[1] for b in bars]),
+        color=[b[2] for b in bars],
+        capsize=4,
+    )
     ax.set(ylabel="Cheetah episode return", title=f"size {size}, rank {rank}, {_seeds([b[1] for b in bars])}")
     fig.tight_layout()
     fig.savefig(os.path.join(out, "exp5.png"), dpi=120)
@@ -279,16 +337,34 @@ def figure_controls(controls, out) -> str | None:
         rows = [r for r in controls if (r["method"], r["family"]) == (method, family)]
         drops = [r for r in rows if r["arm"] == "own - another"]  # paired: same seeds and noise otherwise
         own = {r["protocol"]: r["mean"] for r in rows if r["arm"] == "own"}
-        top.bar([f"{r['protocol']}\n(own: {own[r['protocol']]:.0f})" for r in drops],
-                [r["mean"] for r in drops], yerr=[_ci(r["ci95_pairs"]) for r in drops], color=COLORS[method], capsize=4)
+        top.bar(
+            [f"{r['protocol']}\n(own: {own[r['protocol']]:.0f})" for r in drops],
+            [r["mean"] for r in drops],
+            yerr=[_ci(r["ci95_pairs"]) for r in drops],
+            color=COLORS[method],
+            capsize=4,
+        )
         top.axhline(0, color="gray", linewidth=0.8)
-        top.set(title=f"{LABELS[method]}\n{family}, seeds {rows[0]['seeds']}\nown minus another environment's context",
-                ylabel="return difference (95% CI, seed x env)")
+        top.set(
+            title=f"{LABELS[method]}\n{family}, seeds {rows[0]['seeds']}\nown minus another environment's context",
+            ylabel="return difference (95% CI, seed x env)",
+        )
         sizes = sorted((r for r in rows if r["arm"] == "size"), key=lambda r: r["context_episodes"])
         episodes = [r["context_episodes"] for r in sizes]
-        bottom.errorbar(episodes, [r["mean"] for r in sizes], yerr=_yerr("return", sizes, "ci95_seeds"),
-                        color=COLORS[method], marker="o", capsize=4)
-        bottom.set(xscale="log", xlabel="pi_con episodes in the context", ylabel="offline return (95% CI, seeds)", title=f"{family}: context size")
+        bottom.errorbar(
+            episodes,
+            [r["mean"] for r in sizes],
+            yerr=_yerr("return", sizes, "ci95_seeds"),
+            color=COLORS[method],
+            marker="o",
+            capsize=4,
+        )
+        bottom.set(
+            xscale="log",
+            xlabel="pi_con episodes in the context",
+            ylabel="offline return (95% CI, seeds)",
+            title=f"{family}: context size",
+        )
         bottom.set_xticks(episodes, [str(k) for k in episodes])
     fig.tight_layout()
     fig.savefig(os.path.join(out, "controls.png"), dpi=120)
@@ -297,8 +373,12 @@ def figure_controls(controls, out) -> str | None:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("roots", nargs="+", metavar="root",
-                        help="sweep directories or archives (experiments/archive.py), e.g. runs/sweeps/cpu results/learn/runs")
+    parser.add_argument(
+        "roots",
+        nargs="+",
+        metavar="root",
+        help="sweep directories or archives (experiments/archive.py), e.g. runs/sweeps/cpu results/learn/runs",
+    )
     parser.add_argument("--out", default=None, help="output directory (default: the first root)")
     cli = parser.parse_args(argv)
     out = cli.out or cli.roots[0]

@@ -47,6 +47,7 @@ Scales:
          20 environments x 5 sweep points x 500-step episodes, ~100k planner calls per run).
   smoke  seconds-long runs used by the tests.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -94,8 +95,11 @@ SCALES = {
     "paper": {
         "seeds": (1, 2, 3, 4, 5),
         "exp12_families": ("walker", "reach", "push", "go1"),
-        "exp12_size": "A", "exp12_rank": 16,
-        "exp3_sizes": tuple(SIZE_RANKS), "exp4_size": "F", "exp4_ranks": (1, 2, 4, 8, 16, 32),
+        "exp12_size": "A",
+        "exp12_rank": 16,
+        "exp3_sizes": tuple(SIZE_RANKS),
+        "exp4_size": "F",
+        "exp4_ranks": (1, 2, 4, 8, 16, 32),
         "common": [],
         "exp345": ["--online-eval-steps", "5000"],  # 10 episodes of 500 agent steps, re-adapting every step
         # the CLAW runs' 10 offline episodes; no online arm: the controls run on the CPU, where 30,000 online steps
@@ -105,11 +109,33 @@ SCALES = {
     "cpu": {
         "seeds": (1, 2, 3),
         "exp12_families": ("reach",),
-        "exp12_size": "G", "exp12_rank": 4,
-        "exp3_sizes": ("G", "H", "I"), "exp4_size": "H", "exp4_ranks": (1, 4, 16),
-        "common": ["--total-timesteps", "5000", "--seed-steps", "1000", "--burst-updates", "500",
-                   "--num-samples", "128", "--num-elites", "16", "--num-pi-trajs", "8", "--iterations", "4",
-                   "--eval-episodes", "3", "--log-every", "500", "--checkpoint-every", "1000"],
+        "exp12_size": "G",
+        "exp12_rank": 4,
+        "exp3_sizes": ("G", "H", "I"),
+        "exp4_size": "H",
+        "exp4_ranks": (1, 4, 16),
+        "common": [
+            "--total-timesteps",
+            "5000",
+            "--seed-steps",
+            "1000",
+            "--burst-updates",
+            "500",
+            "--num-samples",
+            "128",
+            "--num-elites",
+            "16",
+            "--num-pi-trajs",
+            "8",
+            "--iterations",
+            "4",
+            "--eval-episodes",
+            "3",
+            "--log-every",
+            "500",
+            "--checkpoint-every",
+            "1000",
+        ],
         "exp12": ["--online-eval-steps", "600", "--offline-adapt-steps", "0", "1", "10", "100"],
         "exp345": ["--online-eval-steps", "1000"],
         "controls": ["--eval-episodes", "3", "--online-eval-steps", "600", "--context-episodes", "1", "3", "10"],
@@ -117,38 +143,72 @@ SCALES = {
     "learn": {
         "seeds": (1, 2, 3),
         "exp12_families": ("reach", "walker", "go1", "push"),
-        "exp12_size": "F", "exp12_rank": 16,
+        "exp12_size": "F",
+        "exp12_rank": 16,
         "common": ["--compile", "on", "--log-every", "1000", "--checkpoint-every", "5000"],
         "exp12": ["--offline-adapt-steps", "0", "1", "10", "100", "1000"],
-        "exp12_family": {"reach": ["--total-timesteps", "50000", "--online-eval-steps", "2000"],
-                         "walker": ["--total-timesteps", "50000", "--online-eval-steps", "1000", "--eval-episodes", "2"],
-                         # budgets from experiment budget: ST's success / return clearly above random in both seeds
-                         "push": ["--total-timesteps", "100000", "--online-eval-steps", "2000"],
-                         "go1": ["--total-timesteps", "70000", "--online-eval-steps", "3000", "--eval-episodes", "2"]},
-        "budget": ["--no-evaluate-after-training"], "budget_seeds": (1, 2),
+        "exp12_family": {
+            "reach": ["--total-timesteps", "50000", "--online-eval-steps", "2000"],
+            "walker": ["--total-timesteps", "50000", "--online-eval-steps", "1000", "--eval-episodes", "2"],
+            # budgets from experiment budget: ST's success / return clearly above random in both seeds
+            "push": ["--total-timesteps", "100000", "--online-eval-steps", "2000"],
+            "go1": ["--total-timesteps", "70000", "--online-eval-steps", "3000", "--eval-episodes", "2"],
+        },
+        "budget": ["--no-evaluate-after-training"],
+        "budget_seeds": (1, 2),
         # family -> (ST's training environments, agent steps): Cheetah/Walker each embodiment; Push one goal, Go1 forward
         "budget_families": {"cheetah_walker": ((0, 1), 40000), "push": ((0,), 100000), "go1": ((0,), 100000)},
-        "exp3_sizes": ("F",), "exp4_size": "F", "exp4_ranks": (1, 4, 8, 16),
+        "exp3_sizes": ("F",),
+        "exp4_size": "F",
+        "exp4_ranks": (1, 4, 8, 16),
         "exp345": ["--total-timesteps", "40000", "--online-eval-steps", "5000"],  # 2 x the 20,000-step budget
         # the Exp 1/2 evaluation of each family; the compiled planner: ~1.7x faster evaluation at size F
         "controls": ["--context-episodes", "1", "3", "10", "--compile", "on"],
-        "controls_family": {"reach": ["--eval-episodes", "10", "--online-eval-steps", "2000"],
-                            # strengths are sorted: offset 10 of 20 swaps in a strength ~0.5 away, not a neighbour 0.05 away
-                            "walker": ["--eval-episodes", "2", "--online-eval-steps", "1000", "--swap-offset", "10"],
-                            "push": ["--eval-episodes", "10", "--online-eval-steps", "2000"],
-                            "go1": ["--eval-episodes", "2", "--online-eval-steps", "3000"]},
+        "controls_family": {
+            "reach": ["--eval-episodes", "10", "--online-eval-steps", "2000"],
+            # strengths are sorted: offset 10 of 20 swaps in a strength ~0.5 away, not a neighbour 0.05 away
+            "walker": ["--eval-episodes", "2", "--online-eval-steps", "1000", "--swap-offset", "10"],
+            "push": ["--eval-episodes", "10", "--online-eval-steps", "2000"],
+            "go1": ["--eval-episodes", "2", "--online-eval-steps", "3000"],
+        },
     },
     "smoke": {
         "seeds": (1, 2),
         "exp12_families": ("reach",),
-        "exp12_size": "I", "exp12_rank": 2,
-        "exp3_sizes": ("I",), "exp4_size": "I", "exp4_ranks": (1, 2),
-        "common": ["--total-timesteps", "620", "--seed-steps", "100", "--burst-updates", "2", "--batch-size", "16",
-                   "--num-samples", "16", "--num-elites", "4", "--num-pi-trajs", "2", "--iterations", "1",
-                   "--context-pool-episodes", "2", "--context-episodes", "1",
-                   "--eval-episodes", "1", "--log-every", "10"],
+        "exp12_size": "I",
+        "exp12_rank": 2,
+        "exp3_sizes": ("I",),
+        "exp4_size": "I",
+        "exp4_ranks": (1, 2),
+        "common": [
+            "--total-timesteps",
+            "620",
+            "--seed-steps",
+            "100",
+            "--burst-updates",
+            "2",
+            "--batch-size",
+            "16",
+            "--num-samples",
+            "16",
+            "--num-elites",
+            "4",
+            "--num-pi-trajs",
+            "2",
+            "--iterations",
+            "1",
+            "--context-pool-episodes",
+            "2",
+            "--context-episodes",
+            "1",
+            "--eval-episodes",
+            "1",
+            "--log-every",
+            "10",
+        ],
         "exp12": ["--online-eval-steps", "100", "--offline-adapt-steps", "0", "1"],
-        "exp345": ["--online-eval-steps", "100", "--total-timesteps", "1100"],  # beyond cheetah_walker's 1000-step prefill (last flag wins)
+        # --total-timesteps beyond cheetah_walker's 1000-step prefill (last flag wins)
+        "exp345": ["--online-eval-steps", "100", "--total-timesteps", "1100"],
         "controls": ["--eval-episodes", "1", "--online-eval-steps", "20", "--context-episodes", "1", "2"],
     },
 }
@@ -174,14 +234,35 @@ class Run:
     def command(self, run_dir: str, cuda: bool = False) -> list[str]:
         if self.method in CONTROLS:  # the checkpoint carries its run's arguments; the controls run on the CPU
             checkpoint = os.path.join(os.path.dirname(run_dir), self.needs, "checkpoint.pt")
-            return [sys.executable, os.path.join(REPO, SCRIPTS[self.method]), checkpoint, *self.extra,
-                    "--json", os.path.join(run_dir, "controls.json"), "--out", os.path.join(run_dir, "controls.md")]
+            return [
+                sys.executable,
+                os.path.join(REPO, SCRIPTS[self.method]),
+                checkpoint,
+                *self.extra,
+                "--json",
+                os.path.join(run_dir, "controls.json"),
+                "--out",
+                os.path.join(run_dir, "controls.md"),
+            ]
         family = [] if self.method == "posthoc" else ["--family", self.family]
         rank = [] if self.method in ("film", "concat") else ["--rank", str(self.rank)]  # no LoRA, no rank
         device = [] if cuda else ["--no-cuda"]
         env = [] if self.train_env is None else ["--train-env-id", str(self.train_env)]
-        return [sys.executable, os.path.join(REPO, SCRIPTS[self.method]), *family, *env, "--model-size", self.size,
-                *rank, "--seed", str(self.seed), *device, "--run-dir", run_dir, *self.extra]
+        return [
+            sys.executable,
+            os.path.join(REPO, SCRIPTS[self.method]),
+            *family,
+            *env,
+            "--model-size",
+            self.size,
+            *rank,
+            "--seed",
+            str(self.seed),
+            *device,
+            "--run-dir",
+            run_dir,
+            *self.extra,
+        ]
 
 
 def recipe(experiment: str, scale: str) -> list[Run]:
@@ -223,7 +304,9 @@ def recipe(experiment: str, scale: str) -> list[Run]:
             for rank in s["exp4_ranks"]:
                 runs.append(Run("claw", "cheetah_walker", s["exp4_size"], rank, seed, s["common"] + s["exp345"]))
             for method in ("film", "concat"):
-                runs.append(Run(method, "cheetah_walker", s["exp4_size"], SIZE_RANKS[s["exp4_size"]], seed, s["common"] + s["exp345"]))
+                runs.append(
+                    Run(method, "cheetah_walker", s["exp4_size"], SIZE_RANKS[s["exp4_size"]], seed, s["common"] + s["exp345"])
+                )
     elif experiment == "exp5":
         size = s["exp4_size"]
         for seed in s["seeds"]:
@@ -242,8 +325,17 @@ def controls_recipe(s: dict, method: str) -> list[Run]:
     for seed in s["seeds"]:
         for family in s["exp12_families"]:
             trained = Run(CONTROLS[method], family, s["exp12_size"], s["exp12_rank"], seed)
-            runs.append(Run(method, family, trained.size, trained.rank, seed,
-                            s["controls"] + s.get("controls_family", {}).get(family, []), needs=trained.name))
+            runs.append(
+                Run(
+                    method,
+                    family,
+                    trained.size,
+                    trained.rank,
+                    seed,
+                    s["controls"] + s.get("controls_family", {}).get(family, []),
+                    needs=trained.name,
+                )
+            )
     return runs
 
 
@@ -282,8 +374,17 @@ def read_status(run_dir: str) -> dict:
 
 def write_status(run_dir: str, run: Run, command: list[str], status: str, **extra):
     os.makedirs(run_dir, exist_ok=True)
-    record = {"method": run.method, "family": run.family, "size": run.size, "rank": run.rank, "seed": run.seed,
-              "experiments": run.experiments, "command": shlex.join(command), "status": status, **extra}
+    record = {
+        "method": run.method,
+        "family": run.family,
+        "size": run.size,
+        "rank": run.rank,
+        "seed": run.seed,
+        "experiments": run.experiments,
+        "command": shlex.join(command),
+        "status": status,
+        **extra,
+    }
     with open(os.path.join(run_dir, "run.json.tmp"), "w") as f:
         json.dump(record, f, indent=1)
     os.replace(os.path.join(run_dir, "run.json.tmp"), os.path.join(run_dir, "run.json"))
@@ -350,7 +451,7 @@ def recorded_command(record: dict) -> list[str]:
     words = shlex.split(record.get("command", ""))[1:]
     if "--resume" in words:
         at = words.index("--resume")
-        del words[at:at + 2]
+        del words[at : at + 2]
     return words
 
 
@@ -366,8 +467,9 @@ def measure_checkpoint(run_dir: str, method: str, env: dict) -> None:
         path = os.path.join(run_dir, report)
         command = [sys.executable, os.path.join(REPO, "diagnostics", script), os.path.join(run_dir, "checkpoint.pt")]
         with open(os.path.join(run_dir, "stdout.log"), "a") as log, open(path + ".partial", "w") as out:
-            returncode = subprocess.run(command, cwd=REPO, env={**os.environ, **env, "OMP_NUM_THREADS": "1"},
-                                        stdout=out, stderr=log).returncode
+            returncode = subprocess.run(
+                command, cwd=REPO, env={**os.environ, **env, "OMP_NUM_THREADS": "1"}, stdout=out, stderr=log
+            ).returncode
         if returncode == 0:
             os.replace(path + ".partial", path)  # a report exists only whole
         else:
@@ -410,8 +512,14 @@ class RunJob(submitit.helpers.Checkpointable):
             start = time.time()
             with open(os.path.join(run_dir, "stdout.log"), "a") as log:
                 # pass_fds: the script shares the lock (see lock_run)
-                self.process = subprocess.Popen(self.prefix + command + resume, cwd=REPO, env={**os.environ, **env},
-                                                stdout=log, stderr=subprocess.STDOUT, pass_fds=(fd,))
+                self.process = subprocess.Popen(
+                    self.prefix + command + resume,
+                    cwd=REPO,
+                    env={**os.environ, **env},
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    pass_fds=(fd,),
+                )
                 carried, next_look = progress_stamp(run_dir), time.monotonic() + self.CARRY_POLL_S
                 try:
                     # poll, not wait(): submitit's requeue handler runs checkpoint() -> stop() on this
@@ -428,12 +536,25 @@ class RunJob(submitit.helpers.Checkpointable):
                     raise
             # a script ended by SIGTERM/SIGINT was stopped from outside (a shutdown signals the scripts and the
             # launcher together, so _STOP may not be set yet): it resumes from its checkpoint, it did not fail
-            stopped = _STOP.is_set() or returncode in (-signal.SIGTERM, -signal.SIGINT, 128 + signal.SIGTERM, 128 + signal.SIGINT)
+            stopped = _STOP.is_set() or returncode in (
+                -signal.SIGTERM,
+                -signal.SIGINT,
+                128 + signal.SIGTERM,
+                128 + signal.SIGINT,
+            )
             status = "interrupted" if stopped else "done" if returncode == 0 else "failed"
             if status == "done":
                 measure_checkpoint(run_dir, run.method, env)
-            write_status(run_dir, run, command, status, resumed="--resume" in resume, returncode=returncode,
-                         seconds=round(time.time() - start, 1), **where)
+            write_status(
+                run_dir,
+                run,
+                command,
+                status,
+                resumed="--resume" in resume,
+                returncode=returncode,
+                seconds=round(time.time() - start, 1),
+                **where,
+            )
             if status == "done" and self.archive:
                 try:
                     archive_run(run_dir, self.archive)
@@ -475,9 +596,16 @@ class RunJob(submitit.helpers.Checkpointable):
         self.stop()
         record = read_status(run_dir)
         if record.get("status") == "running":
-            write_status(run_dir, run, run.command(run_dir, cuda), "requeued",
-                         **{k: record[k] for k in ("slurm_job", "host") if k in record})
-        return submitit.helpers.DelayedSubmission(RunJob(archive=self.archive, carry=self.carry), run, run_dir, env, cuda, lock_wait_s)
+            write_status(
+                run_dir,
+                run,
+                run.command(run_dir, cuda),
+                "requeued",
+                **{k: record[k] for k in ("slurm_job", "host") if k in record},
+            )
+        return submitit.helpers.DelayedSubmission(
+            RunJob(archive=self.archive, carry=self.carry), run, run_dir, env, cuda, lock_wait_s
+        )
 
 
 def slurm_queued(job_id: str | None) -> bool:
@@ -502,8 +630,10 @@ def pending_runs(runs: list[Run], root: str, cuda: bool = False, archive: str | 
         command = run.command(run_dir, cuda)
         record = read_status(run_dir)
         if record and recorded_command(record) != command[1:]:  # the interpreter may differ between machines
-            print(f"changed      {run.name}: the recipe's command differs from the recorded one (run.json);"
-                  f" delete the run directory to rerun it\n  recorded {record.get('command')}\n  recipe   {shlex.join(command)}")
+            print(
+                f"changed      {run.name}: the recipe's command differs from the recorded one (run.json);"
+                f" delete the run directory to rerun it\n  recorded {record.get('command')}\n  recipe   {shlex.join(command)}"
+            )
         if record.get("status") == "done":
             print(f"skip (done)  {run.name}")
             continue
@@ -514,7 +644,11 @@ def pending_runs(runs: list[Run], root: str, cuda: bool = False, archive: str | 
             print(f"skip (queued {record['slurm_job']}) {run.name}")
             continue
         if run.needs and read_status(os.path.join(root, run.needs)).get("status") != "done":
-            lost = " (archived without its weights: delete it from the archive to retrain it)" if is_archived(archive, run.needs) else ""
+            lost = (
+                " (archived without its weights: delete it from the archive to retrain it)"
+                if is_archived(archive, run.needs)
+                else ""
+            )
             print(f"wait (needs {run.needs} done){lost} {run.name}")
             continue
         resume = resume_args(run_dir, run.method)
@@ -545,8 +679,15 @@ def restore_runs(runs: list[Run], root: str, archive: str | None, carry: str | N
     """Into a sweep directory that lacks them: the carried copies of unfinished runs (to resume), and the archived
     weights of the finished runs that a run still to do needs (Run.needs)."""
     sources = [os.path.join(carry, run.name) for run in runs if carry and not is_archived(archive, run.name)]
-    sources += [os.path.join(archive, run.needs) for run in runs if archive and run.needs and not is_archived(archive, run.name)
-                and is_archived(archive, run.needs) and os.path.isfile(os.path.join(archive, run.needs, WEIGHTS))]
+    sources += [
+        os.path.join(archive, run.needs)
+        for run in runs
+        if archive
+        and run.needs
+        and not is_archived(archive, run.name)
+        and is_archived(archive, run.needs)
+        and os.path.isfile(os.path.join(archive, run.needs, WEIGHTS))
+    ]
     for source in dict.fromkeys(sources):  # once each, in order
         if os.path.isdir(source) and not os.path.exists(os.path.join(root, os.path.basename(source))):
             if dry_run:
@@ -555,8 +696,16 @@ def restore_runs(runs: list[Run], root: str, archive: str | None, carry: str | N
                 print(f"restored     {source} -> {root}")
 
 
-def launch(runs: list[Run], root: str, workers: int | None, dry_run: bool, launcher: str = "local",
-           slurm: dict | None = None, archive: str | None = None, carry: str | None = None) -> int:
+def launch(
+    runs: list[Run],
+    root: str,
+    workers: int | None,
+    dry_run: bool,
+    launcher: str = "local",
+    slurm: dict | None = None,
+    archive: str | None = None,
+    carry: str | None = None,
+) -> int:
     """Run (local) or submit (slurm) every run not finished nor live nor archived; returns the number that failed."""
     slurm = slurm or {}
     cuda = slurm.get("gpus_per_task", 0) > 0
@@ -575,13 +724,25 @@ def launch(runs: list[Run], root: str, workers: int | None, dry_run: bool, launc
     if launcher == "slurm":
         return submit_slurm(pending, root, env, cuda, workers, slurm, archive, carry)
     started = {run.name for run, _ in pending}
-    waiting = [(run, os.path.join(root, run.name)) for run in runs if run.needs and run.name not in started
-               and read_status(os.path.join(root, run.name)).get("status") != "done" and not is_archived(archive, run.name)]
+    waiting = [
+        (run, os.path.join(root, run.name))
+        for run in runs
+        if run.needs
+        and run.name not in started
+        and read_status(os.path.join(root, run.name)).get("status") != "done"
+        and not is_archived(archive, run.name)
+    ]
     return run_local(pending, env, workers or 1, waiting, archive, carry)
 
 
-def run_local(pending: list[tuple[Run, str]], env: dict, workers: int, waiting: list[tuple[Run, str]] = (),
-              archive: str | None = None, carry: str | None = None) -> int:
+def run_local(
+    pending: list[tuple[Run, str]],
+    env: dict,
+    workers: int,
+    waiting: list[tuple[Run, str]] = (),
+    archive: str | None = None,
+    carry: str | None = None,
+) -> int:
     """Runs on this machine, `workers` at a time; a waiting run (Run.needs) joins the front of the queue as soon
     as the run it needs is done, so one launcher call runs the evaluations of the checkpoints it trains.
 
@@ -616,8 +777,11 @@ def run_local(pending: list[tuple[Run, str]], env: dict, workers: int, waiting: 
                     failed += status == "failed"
                     label = "skip (running)" if status == "busy" else f"{status:6s}"
                     print(f"{label} {run.name} ({time.time() - start:.0f} s into the sweep)", flush=True)
-                ready = [item for item in waiting
-                         if read_status(os.path.join(os.path.dirname(item[1]), item[0].needs)).get("status") == "done"]
+                ready = [
+                    item
+                    for item in waiting
+                    if read_status(os.path.join(os.path.dirname(item[1]), item[0].needs)).get("status") == "done"
+                ]
                 for run, _ in ready:
                     print(f"ready        {run.name} ({run.needs} is done)", flush=True)
                 waiting = [item for item in waiting if item not in ready]
@@ -630,15 +794,29 @@ def run_local(pending: list[tuple[Run, str]], env: dict, workers: int, waiting: 
     return failed
 
 
-def submit_slurm(pending: list[tuple[Run, str]], root: str, env: dict, cuda: bool, workers: int | None,
-                 slurm: dict, archive: str | None = None, carry: str | None = None) -> int:
+def submit_slurm(
+    pending: list[tuple[Run, str]],
+    root: str,
+    env: dict,
+    cuda: bool,
+    workers: int | None,
+    slurm: dict,
+    archive: str | None = None,
+    carry: str | None = None,
+) -> int:
     """Submits the runs as one SLURM job array and returns; each array task runs RunJob on its node."""
-    executor = submitit.SlurmExecutor(folder=os.path.join(root, ".submitit", "%j"), max_num_timeout=slurm.get("max_requeues", 3))
-    parameters = {"job_name": "claw-sweep", "time": slurm.get("time", 60), "cpus_per_task": slurm.get("cpus_per_task", 1),
-                  "stderr_to_stdout": True,
-                  # the nodes unpickle RunJob from experiments.sweep
-                  "setup": [f"export PYTHONPATH={shlex.quote(REPO)}${{PYTHONPATH:+:$PYTHONPATH}}"],
-                  "additional_parameters": slurm.get("sbatch", {})}
+    executor = submitit.SlurmExecutor(
+        folder=os.path.join(root, ".submitit", "%j"), max_num_timeout=slurm.get("max_requeues", 3)
+    )
+    parameters = {
+        "job_name": "claw-sweep",
+        "time": slurm.get("time", 60),
+        "cpus_per_task": slurm.get("cpus_per_task", 1),
+        "stderr_to_stdout": True,
+        # the nodes unpickle RunJob from experiments.sweep
+        "setup": [f"export PYTHONPATH={shlex.quote(REPO)}${{PYTHONPATH:+:$PYTHONPATH}}"],
+        "additional_parameters": slurm.get("sbatch", {}),
+    }
     for key in ("partition", "gpus_per_task"):
         if slurm.get(key):
             parameters[key] = slurm[key]
@@ -647,12 +825,16 @@ def submit_slurm(pending: list[tuple[Run, str]], root: str, env: dict, cuda: boo
     executor.update_parameters(**parameters)
     runs, run_dirs = zip(*pending)
     # a requeued job may start while the killed one's processes are still being reaped: wait for its lock
-    jobs = executor.map_array(RunJob(archive=archive, carry=carry), runs, run_dirs, [env] * len(runs), [cuda] * len(runs), [120.0] * len(runs))
+    jobs = executor.map_array(
+        RunJob(archive=archive, carry=carry), runs, run_dirs, [env] * len(runs), [cuda] * len(runs), [120.0] * len(runs)
+    )
     for (run, run_dir), job in zip(pending, jobs):
-        write_status(run_dir, run, run.command(run_dir, cuda), "queued", slurm_job=job.job_id,
-                     slurm_log=str(job.paths.stdout))
-    print(f"submitted {len(jobs)} runs as SLURM job array {jobs[0].job_id.split('_')[0]}; follow with squeue, rerun "
-          f"this command to resubmit runs that died, aggregate once squeue lists none", flush=True)
+        write_status(run_dir, run, run.command(run_dir, cuda), "queued", slurm_job=job.job_id, slurm_log=str(job.paths.stdout))
+    print(
+        f"submitted {len(jobs)} runs as SLURM job array {jobs[0].job_id.split('_')[0]}; follow with squeue, rerun "
+        f"this command to resubmit runs that died, aggregate once squeue lists none",
+        flush=True,
+    )
     return 0
 
 
@@ -672,35 +854,64 @@ def parse_minutes(text: str) -> int:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("experiments", nargs="+", choices=["budget", "controls", "decoder", "exp1", "exp2", "exp3", "exp4", "exp5"])
+    parser.add_argument(
+        "experiments", nargs="+", choices=["budget", "controls", "decoder", "exp1", "exp2", "exp3", "exp4", "exp5"]
+    )
     parser.add_argument("--scale", choices=list(SCALES), default="paper")
-    parser.add_argument("--launcher", choices=["local", "slurm"], default="local",
-                        help="local: runs on this machine; slurm: submits a job array and returns")
-    parser.add_argument("--workers", type=int, default=None,
-                        help="parallel runs (local: default 1; slurm: array parallelism, default no cap)")
+    parser.add_argument(
+        "--launcher",
+        choices=["local", "slurm"],
+        default="local",
+        help="local: runs on this machine; slurm: submits a job array and returns",
+    )
+    parser.add_argument(
+        "--workers", type=int, default=None, help="parallel runs (local: default 1; slurm: array parallelism, default no cap)"
+    )
     parser.add_argument("--root", default=None, help="sweep directory (default runs/sweeps/{scale})")
     parser.add_argument("--methods", nargs="+", choices=list(SCRIPTS), default=None, help="only these methods' runs")
-    parser.add_argument("--families", nargs="+", default=None, metavar="FAMILY",
-                        help="only these families' runs (as run names spell them: reach, walker, cheetah_walker, ...)")
+    parser.add_argument(
+        "--families",
+        nargs="+",
+        default=None,
+        metavar="FAMILY",
+        help="only these families' runs (as run names spell them: reach, walker, cheetah_walker, ...)",
+    )
     parser.add_argument("--seeds", nargs="+", type=int, default=None, metavar="SEED", help="only these seeds' runs")
-    parser.add_argument("--archive", default=None, metavar="DIR",
-                        help="copy each finished run's measurements and weights (not its replay buffer) to DIR, e.g. results/learn/runs, and skip"
-                             " the runs DIR holds: commit DIR, and a sweep directory lost with its machine loses no finished run"
-                             " (experiments/archive.py)")
-    parser.add_argument("--carry", default=None, metavar="DIR",
-                        help="copy each unfinished run's directory to DIR, e.g. results/learn/carry, whenever it saves progress,"
-                             " and restore from DIR the runs the sweep directory lacks: commit DIR, and a run outlives its"
-                             " machine (resumed from its last checkpoint by the next launcher); needs --archive")
+    parser.add_argument(
+        "--archive",
+        default=None,
+        metavar="DIR",
+        help="copy each finished run's measurements and weights (not its replay buffer) to DIR, e.g. results/learn/runs, and skip"
+        " the runs DIR holds: commit DIR, and a sweep directory lost with its machine loses no finished run"
+        " (experiments/archive.py)",
+    )
+    parser.add_argument(
+        "--carry",
+        default=None,
+        metavar="DIR",
+        help="copy each unfinished run's directory to DIR, e.g. results/learn/carry, whenever it saves progress,"
+        " and restore from DIR the runs the sweep directory lacks: commit DIR, and a run outlives its"
+        " machine (resumed from its last checkpoint by the next launcher); needs --archive",
+    )
     parser.add_argument("--dry-run", action="store_true", help="list the commands and exit")
     group = parser.add_argument_group("slurm", "options of --launcher slurm")
     group.add_argument("--partition", default=None)
-    group.add_argument("--time", default=None, help="time limit per run: MINUTES, HH:MM:SS or D-HH:MM (default 60);"
-                       " a run that hits it is requeued and resumes from its checkpoint")
+    group.add_argument(
+        "--time",
+        default=None,
+        help="time limit per run: MINUTES, HH:MM:SS or D-HH:MM (default 60);"
+        " a run that hits it is requeued and resumes from its checkpoint",
+    )
     group.add_argument("--cpus-per-task", type=int, default=None, help="default 1; also the runs' OMP_NUM_THREADS")
     group.add_argument("--gpus-per-task", type=int, default=None, help="default 0; >0 runs the scripts on CUDA")
     group.add_argument("--max-requeues", type=int, default=None, help="time-outs before a run gives up (default 3)")
-    group.add_argument("--sbatch", action="append", default=[], metavar="KEY=VALUE",
-                       help="any other sbatch option, e.g. --sbatch qos=high --sbatch account=lab (repeatable)")
+    group.add_argument(
+        "--sbatch",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="any other sbatch option, e.g. --sbatch qos=high --sbatch account=lab (repeatable)",
+    )
     cli = parser.parse_args(argv)
 
     def fail(message: str):  # one line, not argparse's usage block
@@ -709,8 +920,14 @@ def main(argv=None):
     if cli.workers is not None and cli.workers < 1:
         fail(f"--workers must be >= 1, got {cli.workers}")
     slurm = {}
-    slurm_options = {"partition": cli.partition, "time": cli.time, "cpus_per_task": cli.cpus_per_task,
-                     "gpus_per_task": cli.gpus_per_task, "max_requeues": cli.max_requeues, "sbatch": cli.sbatch}
+    slurm_options = {
+        "partition": cli.partition,
+        "time": cli.time,
+        "cpus_per_task": cli.cpus_per_task,
+        "gpus_per_task": cli.gpus_per_task,
+        "max_requeues": cli.max_requeues,
+        "sbatch": cli.sbatch,
+    }
     if cli.launcher == "local":
         given = [f"--{k.replace('_', '-')}" for k, v in slurm_options.items() if v not in (None, [])]
         if given:
@@ -739,11 +956,21 @@ def main(argv=None):
     if os.path.exists(root) and not os.path.isdir(root):
         raise SystemExit(f"error: --root {root!r} exists and is not a directory")
     planned = plan_runs(cli.experiments, cli.scale)
-    for option, values, known in (("--families", cli.families, {r.family for r in planned}), ("--seeds", cli.seeds, {r.seed for r in planned})):
+    for option, values, known in (
+        ("--families", cli.families, {r.family for r in planned}),
+        ("--seeds", cli.seeds, {r.seed for r in planned}),
+    ):
         if values is not None and set(values) - known:
-            fail(f"{option} {' '.join(map(str, sorted(set(values) - known)))}: not in these recipes (they have {' '.join(map(str, sorted(known)))})")
-    runs = [r for r in planned if (cli.methods is None or r.method in cli.methods) and (cli.families is None or r.family in cli.families)
-            and (cli.seeds is None or r.seed in cli.seeds)]
+            fail(
+                f"{option} {' '.join(map(str, sorted(set(values) - known)))}: not in these recipes (they have {' '.join(map(str, sorted(known)))})"
+            )
+    runs = [
+        r
+        for r in planned
+        if (cli.methods is None or r.method in cli.methods)
+        and (cli.families is None or r.family in cli.families)
+        and (cli.seeds is None or r.seed in cli.seeds)
+    ]
     print(f"{len(runs)} runs for {' '.join(cli.experiments)} at scale {cli.scale} in {root}")
     archive = os.path.abspath(cli.archive) if cli.archive else None
     if cli.carry and not archive:

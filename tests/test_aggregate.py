@@ -1,17 +1,27 @@
 """aggregate.py on synthetic runs with known answers: claim verdicts, context-control tables, training curves."""
+
 import json
 import math
 
 import pytest
 import scipy.stats
 
-from experiments import aggregate, figures
 from common.evaluation import mean_ci
+from experiments import aggregate, figures
 
 
 def fake_run(method, family, seed, scalars, size="F", rank=16):
-    return {"dir": f"/nonexistent/{method}{family}{size}{rank}{seed}", "method": method, "family": family, "size": size,
-            "rank": rank, "seed": seed, "status": "done", "experiments": [], "scalars": scalars}
+    return {
+        "dir": f"/nonexistent/{method}{family}{size}{rank}{seed}",
+        "method": method,
+        "family": family,
+        "size": size,
+        "rank": rank,
+        "seed": seed,
+        "status": "done",
+        "experiments": [],
+        "scalars": scalars,
+    }
 
 
 def online(values):
@@ -53,7 +63,9 @@ def test_exp2_collapse_is_paired_against_the_best_earlier_sweep_point():
     claim = verdicts(runs)["Gradient methods collapse with many offline steps, CLAW does not"]
     lines = {line.split(":")[0]: line for line in claim["evidence"]}
     dr = lines["walker Exp 2 DR collapses"]
-    assert "return at 10 steps (its best before 1000) - at 1000" in dr and "paired over 3 seeds" in dr and dr.endswith("supports")
+    assert (
+        "return at 10 steps (its best before 1000) - at 1000" in dr and "paired over 3 seeds" in dr and dr.endswith("supports")
+    )
     mean, half = mean_ci([150.0 + s for s in (1, 2, 3)])
     assert f"+{mean:.1f} [{mean - half:+.1f}, {mean + half:+.1f}]" in dr
     assert lines["walker Exp 2 ST collapses"].endswith("contradicts")  # ST improves with steps here
@@ -61,21 +73,43 @@ def test_exp2_collapse_is_paired_against_the_best_earlier_sweep_point():
     assert claim["verdict"] == "not reproduced"
 
     # seeds 1-2 measured the 10-step point, seeds 3-4 the 1000-step point: nothing to pair
-    split = [fake_run("dr", "reach", s, {"eval/offline/episodic_return": [(0, 100.0), (10 if s < 3 else 1000, 200.0 if s < 3 else 50.0)]})
-             for s in (1, 2, 3, 4)]
+    split = [
+        fake_run(
+            "dr", "reach", s, {"eval/offline/episodic_return": [(0, 100.0), (10 if s < 3 else 1000, 200.0 if s < 3 else 50.0)]}
+        )
+        for s in (1, 2, 3, 4)
+    ]
     evidence = verdicts(split)["Gradient methods collapse with many offline steps, CLAW does not"]["evidence"]
-    assert "reach Exp 2 DR collapses: return at 10 steps (its best before 1000) - at 1000: runs missing (0 seed(s) with both values)" in evidence
+    assert (
+        "reach Exp 2 DR collapses: return at 10 steps (its best before 1000) - at 1000: runs missing (0 seed(s) with both values)"
+        in evidence
+    )
 
 
 def test_rank_slope_and_exp5_posthoc_comparison():
-    runs = [fake_run("claw", "cheetah_walker", s, {**online(50.0 * r.bit_length() + s), "eval/online/env0/episodic_return": [(100, 80.0 + s)]},
-                     rank=r) for r in (1, 4, 8, 16) for s in (1, 2, 3)]
-    runs += [fake_run("posthoc", "cheetah_walker", s, {"eval/online/env0/episodic_return": [(100, 80.0 + 2 * s - 1)]}, rank=8)
-             for s in (1, 2, 3)]
+    runs = [
+        fake_run(
+            "claw",
+            "cheetah_walker",
+            s,
+            {**online(50.0 * r.bit_length() + s), "eval/online/env0/episodic_return": [(100, 80.0 + s)]},
+            rank=r,
+        )
+        for r in (1, 4, 8, 16)
+        for s in (1, 2, 3)
+    ]
+    runs += [
+        fake_run("posthoc", "cheetah_walker", s, {"eval/online/env0/episodic_return": [(100, 80.0 + 2 * s - 1)]}, rank=8)
+        for s in (1, 2, 3)
+    ]
     runs += [fake_run(m, "cheetah_walker", s, online(10.0 * s), rank=8) for m in ("film", "concat") for s in (1, 2, 3)]
     claims = verdicts(runs)
     slope = claims["Return rises with LoRA rank"]
-    assert slope["verdict"] == "reproduced" and "ranks [1, 4, 8, 16]" in slope["evidence"][0] and "+50.0 [" in slope["evidence"][0]
+    assert (
+        slope["verdict"] == "reproduced"
+        and "ranks [1, 4, 8, 16]" in slope["evidence"][0]
+        and "+50.0 [" in slope["evidence"][0]
+    )
     assert claims["CLAW beats FiLM and Concat at mid sizes"]["verdict"] == "reproduced"
     assert claims["Joint training beats the post-hoc hypernetwork"]["verdict"] == "not separable at n = 3"
     assert verdicts(runs, exp4_size="H", exp4_rank=2)["Return rises with LoRA rank"]["verdict"] == "runs missing"
@@ -86,14 +120,32 @@ def test_controls_rows_average_environments_per_seed_then_across_seeds(tmp_path)
     for seed in (1, 2, 3):
         own = {str(e): 100.0 + 10 * e + seed for e in range(3)}
         swapped = {str(e): 90.0 + 10 * e for e in range(3)}
-        result = {"family": "reach", "n_envs": 3, "context_episodes": 3, "swap_offset": 1, "eval_episodes": 2,
-                  "online_eval_steps": 0, "swap": {"own": {"offline": own}, "swapped": {"offline": swapped}},
-                  "size": {"1": swapped, "10": own}}
+        result = {
+            "family": "reach",
+            "n_envs": 3,
+            "context_episodes": 3,
+            "swap_offset": 1,
+            "eval_episodes": 2,
+            "online_eval_steps": 0,
+            "swap": {"own": {"offline": own}, "swapped": {"offline": swapped}},
+            "size": {"1": swapped, "10": own},
+        }
         run_dir = tmp_path / f"controls{seed}"
         run_dir.mkdir()
         (run_dir / "controls.json").write_text(json.dumps(result))
-        runs.append({"dir": str(run_dir), "method": "controls", "family": "reach", "size": "F", "rank": 16, "seed": seed,
-                     "status": "done", "experiments": ["controls"], "scalars": {}})
+        runs.append(
+            {
+                "dir": str(run_dir),
+                "method": "controls",
+                "family": "reach",
+                "size": "F",
+                "rank": 16,
+                "seed": seed,
+                "status": "done",
+                "experiments": ["controls"],
+                "scalars": {},
+            }
+        )
     assert aggregate.problem(runs[0]) == "context controls (evaluation only), in controls.md"
     # the decoder runs' controls: a group of their own, whatever their numbers
     runs.append({**runs[0], "method": "controls_decoder", "experiments": ["decoder"]})
@@ -109,28 +161,47 @@ def test_controls_rows_average_environments_per_seed_then_across_seeds(tmp_path)
     rows = {r["quantity"]: r for r in aggregate.controls_rows(runs)}
     drop = rows["offline: own - another's"]
     assert drop["mean"] == pytest.approx(12.0) and drop["ci95_seeds"] == pytest.approx(mean_ci([11.0, 12.0, 13.0])[1])
-    assert drop["n_pairs"] == 9 and drop["ci95_pairs"] == pytest.approx(mean_ci([10.0 + s for s in (1, 2, 3) for _ in range(3)])[1])
+    assert drop["n_pairs"] == 9 and drop["ci95_pairs"] == pytest.approx(
+        mean_ci([10.0 + s for s in (1, 2, 3) for _ in range(3)])[1]
+    )
     assert list(rows)[-2:] == ["offline: 1-episode own context", "offline: 10-episode own context"]
     assert rows["offline: own context (3 episodes)"]["mean"] == pytest.approx(112.0)
-    assert "| claw | reach | F | 16 | offline: own - another's | 3 | 12.0 |" in aggregate.controls_markdown(aggregate.controls_rows(runs))
+    assert "| claw | reach | F | 16 | offline: own - another's | 3 | 12.0 |" in aggregate.controls_markdown(
+        aggregate.controls_rows(runs)
+    )
     assert figures.figure_controls([], str(tmp_path)) == "controls: no finished controls runs"
-    assert figures.figure_controls(aggregate.controls_rows(runs), str(tmp_path)) is None and (tmp_path / "controls.png").stat().st_size > 0
+    assert (
+        figures.figure_controls(aggregate.controls_rows(runs), str(tmp_path)) is None
+        and (tmp_path / "controls.png").stat().st_size > 0
+    )
 
 
 def test_exp12_runs_have_training_curves_per_method_beside_the_budget_runs(tmp_path, monkeypatch):
     monkeypatch.setattr(aggregate, "random_policy_return", lambda family, env_id: 5.0 if env_id == "all" else 4.0)
 
     def run(method, seed, returns, successes=(), experiments=("exp1", "exp2")):
-        return {"method": method, "family": "reach", "size": "F", "seed": seed, "experiments": list(experiments),
-                "command": f"python {method}_tdmpc2.py --family reach",
-                "scalars": {"charts/episodic_return": returns, "charts/episodic_success": list(successes)}}
+        return {
+            "method": method,
+            "family": "reach",
+            "size": "F",
+            "seed": seed,
+            "experiments": list(experiments),
+            "command": f"python {method}_tdmpc2.py --family reach",
+            "scalars": {"charts/episodic_return": returns, "charts/episodic_success": list(successes)},
+        }
 
     runs = [run("st", s, [(2500, 10.0 * s)]) for s in (1, 2)]
     runs += [run("dr", 1, [(1000, 90.0), (2000, 110.0), (4000, 50.0)], [(1000, 0.0), (2000, 1.0), (4000, 1.0)])]
-    runs += [run("oracle", 1, [(2500, 7.0)], experiments=("exp4",)), run("controls", 1, [(2500, 1.0)], experiments=("controls",))]
+    runs += [
+        run("oracle", 1, [(2500, 7.0)], experiments=("exp4",)),
+        run("controls", 1, [(2500, 1.0)], experiments=("controls",)),
+    ]
     rows = aggregate.training_curves(runs)
     assert [(r["method"], r["train_env"], r["step"], r["n"], r["mean"], r["random_policy"]) for r in rows] == [
-        ("dr", "all", 2500, 1, 100.0, 5.0), ("dr", "all", 5000, 1, 50.0, 5.0), ("st", 0, 2500, 2, 15.0, 4.0)]
+        ("dr", "all", 2500, 1, 100.0, 5.0),
+        ("dr", "all", 5000, 1, 50.0, 5.0),
+        ("st", 0, 2500, 2, 15.0, 4.0),
+    ]
     assert [r["success"] for r in rows[:2]] == [0.5, 1.0] and math.isnan(rows[2]["success"])
     table = aggregate.training_markdown(rows)
     assert "| dr | reach | all | F | 2500 | 1 | 100.0 | none (one sample) | 20.0 (random 5.0) | 0.50 |" in table
@@ -155,8 +226,16 @@ def test_panel_grid_legend_lists_every_method_of_every_panel(tmp_path, monkeypat
 
 def test_exp4_title_counts_the_seeds_of_the_methods_it_draws(tmp_path, monkeypatch):
     def row(method, rank, n):
-        return {"method": method, "family": "cheetah_walker", "size": "F", "rank": rank, "metric": "online_return",
-                "mean": 150.0, "n": n, "ci95": 20.0}
+        return {
+            "method": method,
+            "family": "cheetah_walker",
+            "size": "F",
+            "rank": rank,
+            "metric": "online_return",
+            "mean": 150.0,
+            "n": n,
+            "ci95": 20.0,
+        }
 
     rows = [row("claw", 1, 2), row("claw", 4, 2), row("film", 8, 2), row("concat", 8, 2), row("posthoc", 8, 1)]
     saved = []

@@ -1,4 +1,5 @@
 """dr/st/oracle_tdmpc2.py: plain TD-MPC2 pretraining, gradient-adapted LoRA, both protocols."""
+
 import contextlib
 import copy
 import dataclasses
@@ -17,13 +18,30 @@ from common.envs import env_param, make_env
 SCRIPTS = {"dr": dr, "st": st, "oracle": oracle}
 
 
-
 def tiny_args(script, tmp_path, **overrides):
     """Size I on reach (6 envs, 100-step episodes), tiny planner and batch, a two-point Exp 2 sweep."""
-    base = dict(family="reach", model_size="I", rank=2, total_timesteps=700, seed_steps=100, burst_updates=5,
-                batch_size=16, num_samples=16, num_elites=4, num_pi_trajs=2, iterations=1, context_episodes=1,
-                online_eval_steps=100, eval_episodes=1, offline_adapt_steps=(0, 2), log_every=20,
-                checkpoint_every=10_000, cuda=False, run_dir=str(tmp_path / "run"), evaluate_after_training=False)
+    base = dict(
+        family="reach",
+        model_size="I",
+        rank=2,
+        total_timesteps=700,
+        seed_steps=100,
+        burst_updates=5,
+        batch_size=16,
+        num_samples=16,
+        num_elites=4,
+        num_pi_trajs=2,
+        iterations=1,
+        context_episodes=1,
+        online_eval_steps=100,
+        eval_episodes=1,
+        offline_adapt_steps=(0, 2),
+        log_every=20,
+        checkpoint_every=10_000,
+        cuda=False,
+        run_dir=str(tmp_path / "run"),
+        evaluate_after_training=False,
+    )
     if script is st:  # one environment: a 100-step prefill; either way one planner episode follows it
         base["total_timesteps"] = 200
     base.update(overrides)
@@ -83,10 +101,22 @@ def test_end_to_end_pretraining_and_both_protocols(name, pretrained):
     online_steps = 0 if name == "oracle" else 6 * args.online_eval_steps
     assert adapt_steps == online_steps + 6 * sum(args.offline_adapt_steps)
     logged = scalars(args.run_dir)
-    assert {"charts/SPS", "charts/episodic_return", "losses/wm_loss", "losses/pi_loss", "losses/grad_norm",
-            "eval/online/episodic_return", "eval/online/env5/episodic_return", "eval/online/env0/success"} <= set(logged)
-    for tag in ("eval/offline/episodic_return", "eval/offline/success",
-                "eval/offline/env0/episodic_return", "eval/offline/env5/success"):
+    assert {
+        "charts/SPS",
+        "charts/episodic_return",
+        "losses/wm_loss",
+        "losses/pi_loss",
+        "losses/grad_norm",
+        "eval/online/episodic_return",
+        "eval/online/env5/episodic_return",
+        "eval/online/env0/success",
+    } <= set(logged)
+    for tag in (
+        "eval/offline/episodic_return",
+        "eval/offline/success",
+        "eval/offline/env0/episodic_return",
+        "eval/offline/env5/success",
+    ):
         assert [step for step, _ in logged[tag]] == [0, 2], tag  # TensorBoard step = offline gradient steps
     assert [step for step, _ in logged["eval/online/episodic_return"]] == [100]  # test-time step of episode end
 
@@ -103,8 +133,14 @@ def test_every_environment_adapts_from_a_fresh_adam_on_the_same_objects(name, pr
         seen.append((id(phi), id(optimizer), id(scale), int(adam["step"]) if adam else 0))
         return adapt_step(model, phi, optimizer, scale, *a, **k)
 
-    eval_args = dataclasses.replace(args, eval_only=True, checkpoint=os.path.join(args.run_dir, "checkpoint.pt"),
-                                    run_dir=str(tmp_path / "eval"), online_eval_steps=0, offline_adapt_steps=(3,))
+    eval_args = dataclasses.replace(
+        args,
+        eval_only=True,
+        checkpoint=os.path.join(args.run_dir, "checkpoint.pt"),
+        run_dir=str(tmp_path / "eval"),
+        online_eval_steps=0,
+        offline_adapt_steps=(3,),
+    )
     with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(io.StringIO()):
         mp.setattr(script, "adapt_step", recording_adapt_step)
         script.main(eval_args)
@@ -116,8 +152,16 @@ def test_eval_only_restores_q_scale_and_takes_any_rank(pretrained, tmp_path):
     args, _, _ = pretrained("dr")
     checkpoint = os.path.join(args.run_dir, "checkpoint.pt")
     assert float(torch.load(checkpoint, weights_only=False)["scale"]) > 0
-    eval_args = dataclasses.replace(args, eval_only=True, checkpoint=checkpoint, run_dir=str(tmp_path / "eval"), rank=4,
-                                    family="reach", online_eval_steps=0, offline_adapt_steps=(1,))
+    eval_args = dataclasses.replace(
+        args,
+        eval_only=True,
+        checkpoint=checkpoint,
+        run_dir=str(tmp_path / "eval"),
+        rank=4,
+        family="reach",
+        online_eval_steps=0,
+        offline_adapt_steps=(1,),
+    )
     with pytest.raises(SystemExit, match="--family walker conflicts with reach"):  # never silently replaced
         run(dr, dataclasses.replace(eval_args, family="walker"))
     out, adapt_steps = run(dr, dataclasses.replace(eval_args, family="reach"))
@@ -153,9 +197,16 @@ def test_fresh_adapters_leave_base_output_unchanged(name):
     outputs = []
     for weights in (script.adapted_weights(model, phi, layout), model.base_weights()):
         z = model.encode(obs, weights)
-        outputs.append((z, model.next(z, action, weights), model.reward_logits(z, action, weights),
-                        model.Q(z, action, weights, "all"), model.Q(z, action, weights, "all", target=True),
-                        model.policy(z, weights["policy"])))
+        outputs.append(
+            (
+                z,
+                model.next(z, action, weights),
+                model.reward_logits(z, action, weights),
+                model.Q(z, action, weights, "all"),
+                model.Q(z, action, weights, "all", target=True),
+                model.policy(z, weights["policy"]),
+            )
+        )
     for adapted, base in zip(*outputs):
         torch.testing.assert_close(adapted, base, rtol=0, atol=0)
     assert phi.abs().sum() > 0  # the random factor B is what lets gradient reach A
@@ -238,11 +289,14 @@ def test_oracle_observations_carry_the_parameter(pretrained):
     assert len({tuple(replay["obs"][s[0], -3:].tolist()) for s in replay["starts"]}) == 6
 
 
-@pytest.mark.parametrize("name, base, adapter", [
-    ("dr", 60667, "9600 (world model) + 1792 (policy)"),  # same numbers as CLAW prints
-    ("st", 60667, "9600 (world model) + 1792 (policy)"),
-    ("oracle", 60731, "9608 (world model) + 1792 (policy)"),  # obs 24 + 1: one more encoder input column
-])
+@pytest.mark.parametrize(
+    "name, base, adapter",
+    [
+        ("dr", 60667, "9600 (world model) + 1792 (policy)"),  # same numbers as CLAW prints
+        ("st", 60667, "9600 (world model) + 1792 (policy)"),
+        ("oracle", 60731, "9608 (world model) + 1792 (policy)"),  # obs 24 + 1: one more encoder input column
+    ],
+)
 def test_dry_run_prints_exact_counts(name, base, adapter, tmp_path, capsys):
     SCRIPTS[name].main(tiny_args(SCRIPTS[name], tmp_path, family="cheetah_walker", model_size="F", rank=8, dry_run=True))
     out = capsys.readouterr().out

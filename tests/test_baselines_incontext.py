@@ -1,20 +1,35 @@
 """film_tdmpc2.py, concat_tdmpc2.py, posthoc_tdmpc2.py: method mechanics, counts, e2e, resume."""
+
 import dataclasses
 import os
 
 import pytest
 import torch
 import torch.nn.functional as F
+from test_claw import synthetic_batch
 
 import concat_tdmpc2 as concat
 import film_tdmpc2 as film
 import posthoc_tdmpc2 as posthoc
-from test_claw import synthetic_batch
 
-TINY = dict(model_size="I", seed_steps=100, burst_updates=5, batch_size=16, num_samples=32, num_elites=8,
-            num_pi_trajs=4, iterations=2, context_pool_episodes=2, context_episodes=1,
-            online_eval_steps=100, eval_episodes=1, log_every=20, checkpoint_every=10_000, cuda=False,
-            evaluate_after_training=False)
+TINY = dict(
+    model_size="I",
+    seed_steps=100,
+    burst_updates=5,
+    batch_size=16,
+    num_samples=32,
+    num_elites=8,
+    num_pi_trajs=4,
+    iterations=2,
+    context_pool_episodes=2,
+    context_episodes=1,
+    online_eval_steps=100,
+    eval_episodes=1,
+    log_every=20,
+    checkpoint_every=10_000,
+    cuda=False,
+    evaluate_after_training=False,
+)
 
 
 def tiny_args(module, tmp_path, **overrides):
@@ -62,9 +77,14 @@ def test_film_identity_at_init_and_gradient_from_first_update():
         adapted, base = film.adapted_weights(model, phi, layout), model.base_weights()
         for weights in (adapted, base):
             z = model.encode(obs[0], weights)
-            weights["out"] = (z, model.next(z, action[0], weights), model.reward_logits(z, action[0], weights),
-                              model.Q(z, action[0], weights, "all"), model.Q(z, action[0], weights, "all", target=True),
-                              model.policy(z, weights["policy"]))
+            weights["out"] = (
+                z,
+                model.next(z, action[0], weights),
+                model.reward_logits(z, action[0], weights),
+                model.Q(z, action[0], weights, "all"),
+                model.Q(z, action[0], weights, "all", target=True),
+                model.policy(z, weights["policy"]),
+            )
     assert phi.abs().sum() == 0  # template zero and generator output zero: gamma = beta = 0
     for a, b in zip(adapted["out"], base["out"]):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
@@ -100,9 +120,11 @@ def test_film_scales_and_shifts_layernorm_outputs():
         z = model.encode(obs, film.adapted_weights(model, phi, layout))
         enc, x = model.encoder, obs
         for layer in range(enc.num_normed):
-            (_, _, shape, offset), = [e for e in layout if e[:2] == ("encoder", layer)]
+            ((_, _, shape, offset),) = [e for e in layout if e[:2] == ("encoder", layer)]
             gamma, beta = phi[offset : offset + shape[0]], phi[offset + shape[0] : offset + 2 * shape[0]]
-            x = F.layer_norm(F.linear(x, enc.weights[layer], enc.biases[layer]), shape, enc.norm_weights[layer], enc.norm_biases[layer])
+            x = F.layer_norm(
+                F.linear(x, enc.weights[layer], enc.biases[layer]), shape, enc.norm_weights[layer], enc.norm_biases[layer]
+            )
             x = x * (1 + gamma) + beta
             x = F.mish(x) if layer < enc.num_normed - 1 else torch.softmax(x.view(len(x), -1, 8), -1).view(len(x), -1)
     torch.testing.assert_close(z, x)
@@ -116,8 +138,14 @@ def test_film_end_to_end_and_resume(tmp_path, capsys):
     film.main(args)
     out = capsys.readouterr().out
     assert out.count("eval env") == 6 and "eval offline: return" in out
-    assert {"charts/SPS", "losses/wm_loss", "losses/adapter_norm", "eval/online/episodic_return",
-            "eval/offline/episodic_return", "eval/online/env5/episodic_return"} <= scalar_tags(args.run_dir)
+    assert {
+        "charts/SPS",
+        "losses/wm_loss",
+        "losses/adapter_norm",
+        "eval/online/episodic_return",
+        "eval/offline/episodic_return",
+        "eval/online/env5/episodic_return",
+    } <= scalar_tags(args.run_dir)
     checkpoint = os.path.join(args.run_dir, "checkpoint.pt")
     state = torch.load(checkpoint, weights_only=False)
     state["args"].update(total_timesteps=660, evaluate_after_training=False)  # as if killed at 640 of 660
@@ -137,7 +165,10 @@ def test_concat_encoder_input_is_obs_plus_context(tmp_path, capsys):
     concat.main(tiny_args(concat, tmp_path, family="cheetah_walker", model_size="F", dry_run=True))
     out = capsys.readouterr().out
     assert f"base parameters: {60667 + 64 * 64}\n" in out  # only the encoder's first layer widens
-    assert "adapter parameters: 0 (world model) + 0 (policy)\ncontext encoder parameters: " in out and "(context dimension 64)\n" in out
+    assert (
+        "adapter parameters: 0 (world model) + 0 (policy)\ncontext encoder parameters: " in out
+        and "(context dimension 64)\n" in out
+    )
 
 
 def test_concat_context_conditions_latent_and_trains_end_to_end():
@@ -151,8 +182,18 @@ def test_concat_context_conditions_latent_and_trains_end_to_end():
         z2 = model.encode(obs[0], concat.conditioned_weights(model, encoder(context * 3)))
     assert z1.shape == (32, 32) and not torch.allclose(z1, z2)
     before = [p.detach().clone() for p in encoder.parameters()]
-    info = concat.update(model, encoder, concat.make_optimizers(model, encoder, args), concat.RunningScale(args.tau, "cpu"),
-                         obs, action, reward, context, 0.99, args)
+    info = concat.update(
+        model,
+        encoder,
+        concat.make_optimizers(model, encoder, args),
+        concat.RunningScale(args.tau, "cpu"),
+        obs,
+        action,
+        reward,
+        context,
+        0.99,
+        args,
+    )
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in encoder.parameters())
     assert all(not torch.equal(a, b) for a, b in zip(before, encoder.parameters()))
     assert "context_norm" in info and "adapter_norm" not in info
@@ -164,21 +205,27 @@ def test_concat_end_to_end_and_eval_only(tmp_path, capsys):
     assert {"charts/SPS", "losses/wm_loss", "losses/context_norm"} <= scalar_tags(args.run_dir)
     capsys.readouterr()
     eval_dir = tmp_path / "eval"
-    eval_args = dataclasses.replace(args, eval_only=True, checkpoint=os.path.join(args.run_dir, "checkpoint.pt"), run_dir=str(eval_dir))
+    eval_args = dataclasses.replace(
+        args, eval_only=True, checkpoint=os.path.join(args.run_dir, "checkpoint.pt"), run_dir=str(eval_dir)
+    )
     with pytest.raises(SystemExit, match="--context-dim 1 conflicts with 64"):  # never silently replaced
         concat.main(dataclasses.replace(eval_args, context_dim=1))
     concat.main(eval_args)
     out = capsys.readouterr().out
     assert out.count("eval env") == 6 and "eval offline: return" in out
-    assert {"eval/online/episodic_return", "eval/offline/episodic_return", "eval/online/env5/episodic_return",
-            "eval/offline/env0/success"} <= scalar_tags(eval_dir)
+    assert {
+        "eval/online/episodic_return",
+        "eval/offline/episodic_return",
+        "eval/online/env5/episodic_return",
+        "eval/offline/env0/success",
+    } <= scalar_tags(eval_dir)
 
 
 # ---------------------------------------------------------------------------------------------
 # Post-hoc
 # ---------------------------------------------------------------------------------------------
 def test_posthoc_bad_arguments(tmp_path):
-    with pytest.raises(SystemExit, match="--family must be cheetah_walker, got 'reach'"):
+    with pytest.raises(SystemExit, match="post-hoc needs --family cheetah_walker .*got 'reach'"):
         posthoc.main(tiny_args(posthoc, tmp_path, family="reach"))
     with pytest.raises(SystemExit, match="unknown family 'hopper'"):
         posthoc.main(tiny_args(posthoc, tmp_path, family="hopper"))
@@ -241,8 +288,12 @@ def test_posthoc_resume_across_pass_boundary_freezes_base_and_evaluates_cheetah(
     for key, value in pass1["model"].items():  # every base parameter and the target critic, bit for bit
         assert torch.equal(value, pass2["model"][key]), key
     assert not torch.equal(pass1["hypernet"]["template"], pass2["hypernet"]["template"])
-    assert {"losses/adapter_norm", "eval/online/episodic_return", "eval/offline/episodic_return",
-            "eval/online/env0/episodic_return"} <= scalar_tags(args.run_dir)
+    assert {
+        "losses/adapter_norm",
+        "eval/online/episodic_return",
+        "eval/offline/episodic_return",
+        "eval/online/env0/episodic_return",
+    } <= scalar_tags(args.run_dir)
     # a run killed inside pass 2 continues pass 2: no new prefill, base still frozen
     state = torch.load(checkpoint, weights_only=False)
     state["args"].update(total_timesteps=1120, evaluate_after_training=False)  # as if killed at 1100 of 1120
@@ -280,8 +331,19 @@ def test_decoder_coef_gives_the_context_encoder_a_gradient_of_its_own(script):
 
     def update(args, model, hypernet, layout_args):
         optimizers = module.make_optimizers(model, hypernet, args)
-        return module.update(model, hypernet, optimizers, module.RunningScale(args.tau, "cpu"), *layout_args,
-                             obs, action, reward, context, 0.99, args)
+        return module.update(
+            model,
+            hypernet,
+            optimizers,
+            module.RunningScale(args.tau, "cpu"),
+            *layout_args,
+            obs,
+            action,
+            reward,
+            context,
+            0.99,
+            args,
+        )
 
     args, model, hypernet, encoder, layout_args = build(0.0)
     assert encoder.reward_decoder is None and "decoder_loss" not in update(args, model, hypernet, layout_args)

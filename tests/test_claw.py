@@ -1,4 +1,5 @@
 """claw_tdmpc2.py: exact architecture, LoRA/hypernet mechanics, planner, determinism, resume, e2e."""
+
 import dataclasses
 import os
 
@@ -14,11 +15,28 @@ PAPER_PARAMS = {"A": 4_960_618, "B": 1_214_651, "D": 325_467, "E": 161_787, "F":
 
 def tiny_args(tmp_path, **overrides) -> claw.Args:
     """Size I on reach with a planner and batch small enough for seconds-long runs."""
-    base = dict(family="reach", model_size="I", rank=2, total_timesteps=640, seed_steps=100, burst_updates=5,
-                batch_size=16, num_samples=32, num_elites=8, num_pi_trajs=4, iterations=2,
-                context_pool_episodes=2, context_episodes=1,
-                online_eval_steps=100, eval_episodes=1, log_every=20, checkpoint_every=10_000,
-                cuda=False, run_dir=str(tmp_path / "run"), evaluate_after_training=False)
+    base = dict(
+        family="reach",
+        model_size="I",
+        rank=2,
+        total_timesteps=640,
+        seed_steps=100,
+        burst_updates=5,
+        batch_size=16,
+        num_samples=32,
+        num_elites=8,
+        num_pi_trajs=4,
+        iterations=2,
+        context_pool_episodes=2,
+        context_episodes=1,
+        online_eval_steps=100,
+        eval_episodes=1,
+        log_every=20,
+        checkpoint_every=10_000,
+        cuda=False,
+        run_dir=str(tmp_path / "run"),
+        evaluate_after_training=False,
+    )
     base.update(overrides)
     return claw.Args(**base)
 
@@ -66,8 +84,12 @@ def test_zero_adapter_update_at_init_leaves_base_output_unchanged():
         base = model.base_weights()
         for weights in (adapted, base):
             z = model.encode(obs[0], weights)
-            weights["out"] = (z, model.next(z, action[0], weights), model.reward_logits(z, action[0], weights),
-                              model.Q(z, action[0], weights, "all"))
+            weights["out"] = (
+                z,
+                model.next(z, action[0], weights),
+                model.reward_logits(z, action[0], weights),
+                model.Q(z, action[0], weights, "all"),
+            )
     for a, b in zip(adapted["out"], base["out"]):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
     # ...but the template is not all zeros: the random factor is what lets gradient through
@@ -134,8 +156,10 @@ def test_same_seed_gives_identical_losses():
         optimizers = claw.make_optimizers(model, hypernet, args)
         scale = claw.RunningScale(args.tau, "cpu")
         torch.manual_seed(3)
-        run = [claw.update(model, hypernet, optimizers, scale, layout, n_wm, *synthetic_batch(seed=s), 0.99, args)
-               for s in range(3)]
+        run = [
+            claw.update(model, hypernet, optimizers, scale, layout, n_wm, *synthetic_batch(seed=s), 0.99, args)
+            for s in range(3)
+        ]
         losses.append([float(info[k]) for info in run for k in ("wm_loss", "pi_loss", "adapter_norm")])
     assert losses[0] == losses[1]
 
@@ -208,11 +232,20 @@ def test_end_to_end_pretraining_and_both_protocols(tmp_path, capsys):
 
     events = EventAccumulator(args.run_dir).Reload()
     tags = set(events.Tags()["scalars"])
-    assert {"charts/SPS", "losses/wm_loss", "losses/adapter_norm", "eval/online/episodic_return",
-            "eval/offline/episodic_return", "eval/online/env5/episodic_return"} <= tags
+    assert {
+        "charts/SPS",
+        "losses/wm_loss",
+        "losses/adapter_norm",
+        "eval/online/episodic_return",
+        "eval/offline/episodic_return",
+        "eval/online/env5/episodic_return",
+    } <= tags
     # the checkpoint evaluates on its own
-    claw.main(dataclasses.replace(args, eval_only=True, checkpoint=os.path.join(args.run_dir, "checkpoint.pt"),
-                                  run_dir=str(tmp_path / "eval")))
+    claw.main(
+        dataclasses.replace(
+            args, eval_only=True, checkpoint=os.path.join(args.run_dir, "checkpoint.pt"), run_dir=str(tmp_path / "eval")
+        )
+    )
     assert capsys.readouterr().out.count("eval env") == 6
     # an explicit --rank that contradicts the checkpoint's is an error, not silently replaced
     with pytest.raises(SystemExit, match="--rank 4 conflicts with 2"):
@@ -254,7 +287,9 @@ def test_context_pool_has_no_buffer_identity_shortcut():
     with torch.no_grad():
         draws = {(e, d): hypernet.encoder(pool.sample(e)) for e in range(3) for d in range(8)}
         fixed = [torch.cat(pool.episodes[e][:10]) for e in range(3)]
-        resamples = {(e, d): hypernet.encoder(fixed[e][torch.randint(len(fixed[e]), (256,))]) for e in range(3) for d in range(8)}
+        resamples = {
+            (e, d): hypernet.encoder(fixed[e][torch.randint(len(fixed[e]), (256,))]) for e in range(3) for d in range(8)
+        }
     assert between_within(draws)[2] < 1.25  # measured 0.94-1.13 over three seeds
     assert between_within(resamples)[2] > 2.0  # measured 2.35-2.62
 
@@ -268,7 +303,9 @@ def test_merged_update_sizes_measure_what_adapted_weights_adds():
     phi = torch.randn(len(hypernet.template), dtype=torch.float64)
     sizes, spreads = merged_update_sizes(model, [phi, 2 * phi], layout)
     base, merged = model.base_weights(), claw.adapted_weights(model, phi, layout)
-    expected = [float((merged[name][layer] - base[name][layer]).norm() / base[name][layer].norm()) for name, layer, *_ in layout]
+    expected = [
+        float((merged[name][layer] - base[name][layer]).norm() / base[name][layer].norm()) for name, layer, *_ in layout
+    ]
     assert sizes == pytest.approx(expected, rel=1e-9) and min(sizes) > 0
     assert spreads == pytest.approx([3 * s for s in sizes], rel=1e-9)  # 2 phi doubles A and B: 4 A B
     assert merged_update_sizes(model, [phi], layout)[1] == [0.0] * len(layout)

@@ -1,13 +1,14 @@
 """--compile: the compiled update and planner agree with the eager ones (CPU inductor; one compile each, ~1-2 min)."""
+
 import copy
 
 import pytest
 import torch
 import torch._inductor.config
+from test_claw import build, synthetic_batch
 
 import claw_tdmpc2 as claw
 import dr_tdmpc2 as dr
-from test_claw import build, synthetic_batch
 
 
 @pytest.fixture
@@ -20,8 +21,11 @@ def eager_random_numbers():
 
 
 def parameters_and_grads(*modules):
-    return [(name, p.detach().clone(), None if p.grad is None else p.grad.clone())
-            for module in modules for name, p in module.named_parameters()]
+    return [
+        (name, p.detach().clone(), None if p.grad is None else p.grad.clone())
+        for module in modules
+        for name, p in module.named_parameters()
+    ]
 
 
 def test_compiled_update_matches_eager(eager_random_numbers):
@@ -35,15 +39,21 @@ def test_compiled_update_matches_eager(eager_random_numbers):
         optimizers, scale = claw.make_optimizers(m, h, args), claw.RunningScale(args.tau, "cpu")
         update = claw.compiled(claw.update, torch.device("cpu")) if mode == "compiled" else claw.update
         torch.manual_seed(0)
-        infos = [update(m, h, optimizers, scale, layout, n_wm, *synthetic_batch(batch=16, seed=i), 0.99, args) for i in range(3)]
+        infos = [
+            update(m, h, optimizers, scale, layout, n_wm, *synthetic_batch(batch=16, seed=i), 0.99, args) for i in range(3)
+        ]
         runs[mode] = infos, parameters_and_grads(m, h), scale.value.clone()
-    (eager_infos, eager_params, eager_scale), (compiled_infos, compiled_params, compiled_scale) = runs["eager"], runs["compiled"]
+    (eager_infos, eager_params, eager_scale), (compiled_infos, compiled_params, compiled_scale) = (
+        runs["eager"],
+        runs["compiled"],
+    )
     for eager_info, compiled_info in zip(eager_infos, compiled_infos):
         for key in ("consistency_loss", "reward_loss", "value_loss", "wm_loss", "pi_loss", "grad_norm"):
             torch.testing.assert_close(compiled_info[key], eager_info[key], rtol=1e-4, atol=1e-6, msg=key)
     moved = 0
-    for (name, eager_p, eager_g), (_, compiled_p, compiled_g), (_, start, _) in zip(eager_params, compiled_params,
-                                                                               parameters_and_grads(model, hypernet)):
+    for (name, eager_p, eager_g), (_, compiled_p, compiled_g), (_, start, _) in zip(
+        eager_params, compiled_params, parameters_and_grads(model, hypernet)
+    ):
         torch.testing.assert_close(compiled_p, eager_p, rtol=1e-4, atol=1e-6, msg=name)
         if eager_g is not None:
             scale = float(eager_g.abs().max())  # float32 sums in another order: ~1e-5 of the largest entry after 3 updates

@@ -1,5 +1,6 @@
 """diagnostics/context_controls.py: the own arm is CLAW's evaluation, the swapped arm feeds another environment's
 context, arms are deterministic, and bad checkpoints are one-line errors."""
+
 import json
 import os
 import random
@@ -7,14 +8,14 @@ import random
 import numpy as np
 import pytest
 import torch
+from test_claw import tiny_args
 
 import claw_tdmpc2 as claw
-from diagnostics import context_controls
+import common.evaluation as common_evaluation
 from common.context import collect_episodes
 from common.envs import make_env
-import common.evaluation as common_evaluation
 from common.evaluation import offline_adaptation
-from test_claw import tiny_args
+from diagnostics import context_controls
 
 N_ENVS = 6  # reach
 
@@ -50,8 +51,15 @@ def by_hand_env0(checkpoint, args):
     discount, state = claw.default_discount(args, 100), {"mean": None}
 
     def act(obs, first_step):
-        action, state["mean"] = claw.plan(model, weights, torch.as_tensor(obs, dtype=torch.float32), None if first_step else state["mean"],
-                                          discount, args, explore=False)
+        action, state["mean"] = claw.plan(
+            model,
+            weights,
+            torch.as_tensor(obs, dtype=torch.float32),
+            None if first_step else state["mean"],
+            discount,
+            args,
+            explore=False,
+        )
         return action.numpy()
 
     records = offline_adaptation(env, context, lambda c: None, act, 1, seed=args.seed + 40_000)
@@ -66,8 +74,9 @@ def test_own_arm_is_claws_evaluation_and_swapped_arm_feeds_the_other_context(che
         return forward(self, transitions)
 
     monkeypatch.setattr(claw.Hypernet, "forward", spy)
-    result = context_controls.controls(checkpoint, swap_offset=1, context_episodes=(1, 2), eval_episodes=1,
-                                       online_eval_steps=0, log=lambda line: None)
+    result = context_controls.controls(
+        checkpoint, swap_offset=1, context_episodes=(1, 2), eval_episodes=1, online_eval_steps=0, log=lambda line: None
+    )
     monkeypatch.setattr(claw.Hypernet, "forward", forward)
     assert result["context_episodes"] == 1 and set(result["size"]) == {1, 2}
     own, swapped = result["swap"]["own"]["offline"], result["swap"]["swapped"]["offline"]
@@ -75,9 +84,14 @@ def test_own_arm_is_claws_evaluation_and_swapped_arm_feeds_the_other_context(che
         assert sorted(column) == list(range(N_ENVS)) and all(np.isfinite(v) for v in column.values())
     # hypernet inputs, in order: own arm, swapped arm (env j gets env j+1's context), the 2-episode own arm;
     # the 1-episode size arm is the own arm (same key: not run again)
-    args = claw.Args(**{k: v for k, v in torch.load(checkpoint, weights_only=False)["args"].items() if k in claw.Args.__dataclass_fields__})
-    expected = ([own_context(args, j, 1) for j in range(N_ENVS)] + [own_context(args, (j + 1) % N_ENVS, 1) for j in range(N_ENVS)]
-                + [own_context(args, j, 2) for j in range(N_ENVS)])
+    args = claw.Args(
+        **{k: v for k, v in torch.load(checkpoint, weights_only=False)["args"].items() if k in claw.Args.__dataclass_fields__}
+    )
+    expected = (
+        [own_context(args, j, 1) for j in range(N_ENVS)]
+        + [own_context(args, (j + 1) % N_ENVS, 1) for j in range(N_ENVS)]
+        + [own_context(args, j, 2) for j in range(N_ENVS)]
+    )
     assert len(inputs) == len(expected)
     for got, want in zip(inputs, expected):
         assert torch.equal(got, want)
@@ -101,8 +115,9 @@ def test_two_runs_print_identical_tables(checkpoint, tmp_path, capsys):
 
 
 def test_online_protocol_own_vs_swapped(checkpoint):
-    result = context_controls.controls(checkpoint, swap_offset=3, context_episodes=(1,), eval_episodes=1, online_eval_steps=100,
-                                       log=lambda line: None)
+    result = context_controls.controls(
+        checkpoint, swap_offset=3, context_episodes=(1,), eval_episodes=1, online_eval_steps=100, log=lambda line: None
+    )
     own, swapped = result["swap"]["own"]["online"], result["swap"]["swapped"]["online"]
     assert sorted(own) == sorted(swapped) == list(range(N_ENVS))
     assert all(np.isfinite(v) for v in [*own.values(), *swapped.values()])  # one finished 100-step episode each
@@ -111,7 +126,9 @@ def test_online_protocol_own_vs_swapped(checkpoint):
     assert result["swap"]["own"]["offline"] != result["size"][1]
     assert "Exp 1 online protocol (100 steps" in context_controls.report(checkpoint, result)
     # an arm after others starts from the same random state as the first: equal to the recomputation
-    args = claw.Args(**{k: v for k, v in torch.load(checkpoint, weights_only=False)["args"].items() if k in claw.Args.__dataclass_fields__})
+    args = claw.Args(
+        **{k: v for k, v in torch.load(checkpoint, weights_only=False)["args"].items() if k in claw.Args.__dataclass_fields__}
+    )
     assert result["size"][1][0] == by_hand_env0(checkpoint, args)
 
 

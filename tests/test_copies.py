@@ -3,6 +3,7 @@
 Each script is split at its section banners (a line of dashes, a title line "# Name: ...", a line of dashes).
 SHARED declares, in this one place, which sections are byte-identical across which scripts: a fix made in one
 copy and not in the others fails here, naming the section and the script that drifted."""
+
 from __future__ import annotations
 
 import os
@@ -29,8 +30,19 @@ SHARED = {
     "Persistence": [("claw", "film", "concat"), ("dr", "st", "oracle")],
 }
 # every script's sections, in this order: the method before the plumbing
-ORDER = ("Math", "Networks", "*", "MPPI planner", "Buffers", "Update", "Evaluation", "Main", "Argument checks",
-         "Run plumbing", "Persistence")
+ORDER = (
+    "Math",
+    "Networks",
+    "*",
+    "MPPI planner",
+    "Buffers",
+    "Update",
+    "Evaluation",
+    "Main",
+    "Argument checks",
+    "Run plumbing",
+    "Persistence",
+)
 
 
 def script_text(script: str) -> str:
@@ -61,7 +73,8 @@ def test_shared_sections_are_identical(section):
             assert section in copy, f"{script}_tdmpc2.py has no section {section!r}"
             assert copy[section] == reference[section], (
                 f"section {section!r} of {script}_tdmpc2.py drifted from {group[0]}_tdmpc2.py's: make the same change in every "
-                f"script of {', '.join(group)}")
+                f"script of {', '.join(group)}"
+            )
 
 
 @pytest.mark.parametrize("script", ALL)
@@ -71,8 +84,11 @@ def test_sections_in_order_method_before_plumbing(script):
     assert fixed == [n for n in ORDER if n in fixed], f"{script}_tdmpc2.py: sections out of order: {names}"
     assert names.index("Networks") < names.index("MPPI planner"), names
     assert all(names.index("Networks") < names.index(n) < names.index("MPPI planner") for n in names if n not in ORDER), (
-        f"{script}_tdmpc2.py: the method's own sections belong between Networks and the planner: {names}")
-    assert script_text(script).rstrip().endswith('main(tyro.cli(Args), typed=typed_flags(sys.argv[1:]))'), "the script ends with its entry point"
+        f"{script}_tdmpc2.py: the method's own sections belong between Networks and the planner: {names}"
+    )
+    assert script_text(script).rstrip().endswith("main(tyro.cli(Args), typed=typed_flags(sys.argv[1:]))"), (
+        "the script ends with its entry point"
+    )
 
 
 def test_a_drifted_copy_is_named(monkeypatch):

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from common.context import collect_episodes
-from common.envs import (FAMILIES, env_param, episode_length, is_metaworld, make_env, num_envs, rng_state,
-                         set_rng_state)
+from common.envs import FAMILIES, env_param, episode_length, is_metaworld, make_env, num_envs, rng_state, set_rng_state
 
 OBS_DIM = {"walker": 24, "reach": 39, "push": 39, "go1": 39, "cheetah_walker": 24}
 ACT_DIM = {"walker": 6, "reach": 4, "push": 4, "go1": 12, "cheetah_walker": 6}
@@ -58,7 +57,7 @@ def test_spaces_and_oracle(family, oracle):
     for o in (obs, obs2):
         assert o.shape == (dim,) and o.dtype == np.float32 and np.all(np.isfinite(o))
         if oracle:
-            np.testing.assert_array_equal(o[-ORACLE_DIM[family]:], env_param(family, env_id))
+            np.testing.assert_array_equal(o[-ORACLE_DIM[family] :], env_param(family, env_id))
     assert isinstance(r, float) and not terminated and not truncated
     assert isinstance(info["success"], float)
     if not is_metaworld(family):
@@ -69,6 +68,7 @@ def test_spaces_and_oracle(family, oracle):
 @pytest.mark.parametrize("family", FAMILIES)
 def test_gymnasium_env_checker(family):
     from gymnasium.utils.env_checker import check_env
+
     check_env(make_env(family, 1).unwrapped, skip_render_check=True)
 
 
@@ -112,8 +112,7 @@ def test_walker_strengths_differ():
     env = make_env("walker", 19)
     for seed in (0, 1):  # the scaled gear must survive resets
         env.reset(seed=seed)
-        np.testing.assert_allclose(env.unwrapped.physics.model.actuator_gear[:, 0],
-                                   1.5 * np.array([100, 50, 20, 100, 50, 20]))
+        np.testing.assert_allclose(env.unwrapped.physics.model.actuator_gear[:, 0], 1.5 * np.array([100, 50, 20, 100, 50, 20]))
 
 
 def test_cheetah_padding():
@@ -144,6 +143,7 @@ def _hand_to(target, hand):
 def reach_policy(goal, tcp_offset):
     def policy(obs):
         return np.append(_hand_to(goal + tcp_offset, obs[:3]), -1.0).astype(np.float32)
+
     return policy
 
 
@@ -164,6 +164,7 @@ def push_policy(goal):
         else:
             target, grip = np.array([goal[0], goal[1], grip_z + 0.01]), 1.0  # carry to the goal
         return np.append(_hand_to(target, hand), grip).astype(np.float32)
+
     return policy
 
 
@@ -202,6 +203,7 @@ def test_push_scripted_policy_prefers_its_goal():
 
 def test_metaworld_rejects_goal_too_close():
     from common.envs import MetaWorldEnv
+
     with pytest.raises(ValueError, match="0.15"):
         MetaWorldEnv("push-v3", [0.05, 0.65, 0.02])
 
@@ -232,8 +234,7 @@ def test_go1_stands_under_pd():
 
 @pytest.mark.parametrize("bad", ["hopper", "Walker", ""])
 def test_unknown_family(bad):
-    for fn in (lambda: make_env(bad, 0), lambda: num_envs(bad), lambda: env_param(bad, 0),
-               lambda: episode_length(bad)):
+    for fn in (lambda: make_env(bad, 0), lambda: num_envs(bad), lambda: env_param(bad, 0), lambda: episode_length(bad)):
         with pytest.raises(ValueError, match="walker, reach, push, go1, cheetah_walker"):
             fn()
 

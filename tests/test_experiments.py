@@ -1,4 +1,5 @@
 """Sweep tooling: CI math, recipes and launcher, aggregation, figures."""
+
 import json
 import math
 import os
@@ -10,10 +11,9 @@ import pytest
 import scipy.stats
 import torch
 
-from experiments import aggregate, figures, sweep
-
-from diagnostics import context_effect, context_identifiability, decoder_signal
 from common.evaluation import mean_ci
+from diagnostics import context_effect, context_identifiability, decoder_signal
+from experiments import aggregate, figures, sweep
 
 
 def test_mean_ci_matches_scipy_on_known_numbers():
@@ -67,8 +67,10 @@ def test_restarted_launcher_skips_live_runs_resumes_dead_ones_and_reports_change
     changed = done.command(str(tmp_path / done.name))
     changed[changed.index("--total-timesteps") + 1] = "999"
     sweep.write_status(str(tmp_path / done.name), done, changed, "done")
-    sweep.write_status(str(tmp_path / queued.name), queued, queued.command(str(tmp_path / queued.name)), "queued",
-                             slurm_job="12_3")  # submitted by an earlier launcher, still pending in SLURM
+    # submitted by an earlier launcher, still pending in SLURM
+    sweep.write_status(
+        str(tmp_path / queued.name), queued, queued.command(str(tmp_path / queued.name)), "queued", slurm_job="12_3"
+    )
     monkeypatch.setattr(sweep, "slurm_queued", lambda job_id: job_id == "12_3")
     try:
         pending = sweep.pending_runs([live, dead, done, queued], str(tmp_path))
@@ -111,9 +113,11 @@ def test_run_job_resumes_a_dead_run_holding_its_lock(tmp_path, monkeypatch):
     run_dir.mkdir()
     (run_dir / "checkpoint.pt").write_bytes(b"")
     # stand-in script: prints its arguments and whether the run's lock is held while it runs
-    probe = ("import fcntl, os, sys; fd = os.open(os.path.join(os.path.dirname(sys.argv[-1]), 'run.lock'), os.O_RDWR)\n"
-             "try: fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB); print('lock free')\n"
-             "except BlockingIOError: print('lock held')\nprint(sys.argv[1:])")
+    probe = (
+        "import fcntl, os, sys; fd = os.open(os.path.join(os.path.dirname(sys.argv[-1]), 'run.lock'), os.O_RDWR)\n"
+        "try: fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB); print('lock free')\n"
+        "except BlockingIOError: print('lock held')\nprint(sys.argv[1:])"
+    )
     monkeypatch.setattr(sweep.Run, "command", lambda self, run_dir, cuda=False: [sweep.sys.executable, "-c", probe])
     assert sweep.RunJob()(run, str(run_dir), {"OMP_NUM_THREADS": "1"}) == "done"
     log = (run_dir / "stdout.log").read_text()
@@ -127,8 +131,15 @@ def test_run_job_resumes_a_dead_run_holding_its_lock(tmp_path, monkeypatch):
     assert isinstance(delayed.function, sweep.RunJob) and delayed.args == (run, str(run_dir), {}, False, 120.0)
     assert sweep.read_status(str(run_dir))["status"] == "requeued"
     # a script killed by SIGTERM (a session's end) was interrupted, not failed: the next launcher resumes it
-    monkeypatch.setattr(sweep.Run, "command", lambda self, run_dir, cuda=False: [
-        sweep.sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGTERM)"])
+    monkeypatch.setattr(
+        sweep.Run,
+        "command",
+        lambda self, run_dir, cuda=False: [
+            sweep.sys.executable,
+            "-c",
+            "import os, signal; os.kill(os.getpid(), signal.SIGTERM)",
+        ],
+    )
     assert sweep.RunJob()(run, str(run_dir), {}) == "interrupted"
     assert sweep.read_status(str(run_dir))["returncode"] == -sweep.signal.SIGTERM
 
@@ -145,18 +156,49 @@ def test_slurm_launcher_submits_one_array_with_the_cli_resources(tmp_path, monke
 
         def map_array(self, fn, *columns):
             submitted["fn"], submitted["columns"] = fn, columns
-            return [type("Job", (), {"job_id": f"7_{i}", "paths": type("P", (), {"stdout": f"log{i}"})})()
-                    for i in range(len(columns[0]))]
+            return [
+                type("Job", (), {"job_id": f"7_{i}", "paths": type("P", (), {"stdout": f"log{i}"})})()
+                for i in range(len(columns[0]))
+            ]
 
     monkeypatch.setattr(sweep.submitit, "SlurmExecutor", FakeExecutor)
     monkeypatch.setattr(sweep.shutil, "which", lambda name: "/usr/bin/" + name)
     monkeypatch.setattr(sweep, "slurm_queued", lambda job_id: False)
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    sweep.main(["exp1", "--scale", "smoke", "--methods", "claw", "--launcher", "slurm", "--root", str(tmp_path),
-                      "--partition", "gpu", "--time", "2:00:00", "--cpus-per-task", "4", "--gpus-per-task", "1",
-                      "--workers", "8", "--sbatch", "qos=high", "--sbatch", "mem-per-cpu=2G"])
+    sweep.main(
+        [
+            "exp1",
+            "--scale",
+            "smoke",
+            "--methods",
+            "claw",
+            "--launcher",
+            "slurm",
+            "--root",
+            str(tmp_path),
+            "--partition",
+            "gpu",
+            "--time",
+            "2:00:00",
+            "--cpus-per-task",
+            "4",
+            "--gpus-per-task",
+            "1",
+            "--workers",
+            "8",
+            "--sbatch",
+            "qos=high",
+            "--sbatch",
+            "mem-per-cpu=2G",
+        ]
+    )
     parameters = submitted["parameters"]
-    assert (parameters["partition"], parameters["time"], parameters["cpus_per_task"], parameters["gpus_per_task"]) == ("gpu", 120, 4, 1)
+    assert (parameters["partition"], parameters["time"], parameters["cpus_per_task"], parameters["gpus_per_task"]) == (
+        "gpu",
+        120,
+        4,
+        1,
+    )
     assert parameters["array_parallelism"] == 8 and parameters["additional_parameters"] == {"qos": "high", "mem_per_cpu": "2G"}
     assert isinstance(submitted["fn"], sweep.RunJob)
     runs, run_dirs, envs, cudas, _ = submitted["columns"]
@@ -167,12 +209,14 @@ def test_slurm_launcher_submits_one_array_with_the_cli_resources(tmp_path, monke
 
 
 def test_launcher_arguments_fail_in_one_line(capsys):
-    for argv, message in ((["--partition", "gpu"], "--partition: options of --launcher slurm only"),
-                          (["--launcher", "slurm", "--dry-run", "--time", "soon"], "--time 'soon': expected"),
-                          (["--launcher", "slurm", "--dry-run", "--sbatch", "qos"], "--sbatch 'qos': expected KEY=VALUE"),
-                          (["--workers", "0"], "--workers must be >= 1, got 0"),
-                          (["--families", "reech", "--dry-run"], "--families reech: not in these recipes .they have go1 push reach walker."),
-                          (["--seeds", "0", "9", "--dry-run"], "--seeds 0 9: not in these recipes .they have 1 2 3 4 5.")):
+    for argv, message in (
+        (["--partition", "gpu"], "--partition: options of --launcher slurm only"),
+        (["--launcher", "slurm", "--dry-run", "--time", "soon"], "--time 'soon': expected"),
+        (["--launcher", "slurm", "--dry-run", "--sbatch", "qos"], "--sbatch 'qos': expected KEY=VALUE"),
+        (["--workers", "0"], "--workers must be >= 1, got 0"),
+        (["--families", "reech", "--dry-run"], "--families reech: not in these recipes .they have go1 push reach walker."),
+        (["--seeds", "0", "9", "--dry-run"], "--seeds 0 9: not in these recipes .they have 1 2 3 4 5."),
+    ):
         with pytest.raises(SystemExit, match=message):
             sweep.main(["exp1", *argv])
     assert [sweep.parse_minutes(t) for t in ("90", "01:30:00", "1:00:01", "2-00:30")] == [90, 90, 61, 2910]
@@ -181,36 +225,85 @@ def test_launcher_arguments_fail_in_one_line(capsys):
 
 
 def test_family_and_seed_filters_pick_the_runs_a_launcher_starts(tmp_path, capsys):
-    sweep.main(["exp1", "decoder", "--scale", "learn", "--families", "reach", "--seeds", "2", "3", "--methods", "claw", "claw_decoder",
-                      "--dry-run", "--root", str(tmp_path)])
+    sweep.main(
+        [
+            "exp1",
+            "decoder",
+            "--scale",
+            "learn",
+            "--families",
+            "reach",
+            "--seeds",
+            "2",
+            "3",
+            "--methods",
+            "claw",
+            "claw_decoder",
+            "--dry-run",
+            "--root",
+            str(tmp_path),
+        ]
+    )
     out = capsys.readouterr().out
     assert out.startswith("4 runs for exp1 decoder at scale learn")  # not the decoder's controls_decoder runs
     assert sorted(line.split("--run-dir ")[1].split()[0].rsplit("/", 1)[1] for line in out.splitlines()[1:]) == [
-        f"{method}__reach__F__r16__s{seed}" for method in ("claw", "claw_decoder") for seed in (2, 3)]
+        f"{method}__reach__F__r16__s{seed}" for method in ("claw", "claw_decoder") for seed in (2, 3)
+    ]
 
 
 def test_grouping_reports_incomplete_runs(tmp_path):
     runs = [
-        {"dir": "a", "method": "claw", "family": "reach", "size": "I", "rank": 2, "seed": s, "status": "done",
-         "scalars": {"eval/online/episodic_return": [(100, v), (200, v + 10)], "eval/offline/episodic_return": [(0, v)]}}
+        {
+            "dir": "a",
+            "method": "claw",
+            "family": "reach",
+            "size": "I",
+            "rank": 2,
+            "seed": s,
+            "status": "done",
+            "scalars": {"eval/online/episodic_return": [(100, v), (200, v + 10)], "eval/offline/episodic_return": [(0, v)]},
+        }
         for s, v in ((1, 10.0), (2, 20.0), (3, 30.0))
     ]
-    runs.append({"dir": "b", "method": "claw", "family": "reach", "size": "I", "rank": 2, "seed": 4, "status": "failed",
-                 "returncode": 1, "scalars": {}})
-    runs.append({"dir": "c", "method": "claw", "family": "reach", "size": "I", "rank": 2, "seed": 5, "status": "done", "scalars": {}})
+    runs.append(
+        {
+            "dir": "b",
+            "method": "claw",
+            "family": "reach",
+            "size": "I",
+            "rank": 2,
+            "seed": 4,
+            "status": "failed",
+            "returncode": 1,
+            "scalars": {},
+        }
+    )
+    runs.append(
+        {"dir": "c", "method": "claw", "family": "reach", "size": "I", "rank": 2, "seed": 5, "status": "done", "scalars": {}}
+    )
     rows, curves, problems = aggregate.summarize(runs)
     online = [r for r in rows if r["metric"] == "online_return"][0]
     assert online["n"] == 3 and online["mean"] == pytest.approx(25.0) and online["seeds"] == "1,2,3"
     assert online["ci95"] == pytest.approx(mean_ci([15.0, 25.0, 35.0])[1])
     assert [c["mean"] for c in curves if c["metric"] == "online_return"] == pytest.approx([20.0, 30.0])
     assert problems == [("b", "status failed (returncode 1)"), ("c", "finished without evaluation events")]
-    assert online["per_seed"] == "15,25,35" and "| 25.0 | ± 24.8 | s1: 15.0, s2: 25.0, s3: 35.0 |" in aggregate.markdown(rows, problems)
+    assert online["per_seed"] == "15,25,35" and "| 25.0 | ± 24.8 | s1: 15.0, s2: 25.0, s3: 35.0 |" in aggregate.markdown(
+        rows, problems
+    )
     assert "Runs not aggregated" in aggregate.markdown(rows, problems)
     # success is a Meta-World metric: a dm_control family's constant-zero success is not reported
     success_scalars = {"eval/online/episodic_return": [(100, 5.0)], "eval/online/success": [(100, 0.0)]}
     for family, expected in (("reach", {"online_return", "online_success"}), ("cheetah_walker", {"online_return"})):
-        run = {"dir": family, "method": "claw", "family": family, "size": "I", "rank": 2, "seed": 1, "status": "done",
-               "scalars": success_scalars}
+        run = {
+            "dir": family,
+            "method": "claw",
+            "family": family,
+            "size": "I",
+            "rank": 2,
+            "seed": 1,
+            "status": "done",
+            "scalars": success_scalars,
+        }
         rows, curves, _ = aggregate.summarize([run])
         assert {r["metric"] for r in rows} == expected and {c["metric"] for c in curves} == expected
 
@@ -229,10 +322,19 @@ def test_context_effect_tells_context_use_from_adaptation():
         batches = {j: (torch.randn(32, obs_dim, generator=g), torch.rand(32, act_dim, generator=g) * 2 - 1) for j in (0, 1)}
         # each environment's context draws scatter a little around rows of their own
         typical = {j: torch.randn(n_rows, 2 * obs_dim + act_dim + 1, generator=g) for j in (0, 1)}
-        contexts = {(j, d): typical[j] + 0.01 * torch.randn(n_rows, 2 * obs_dim + act_dim + 1, generator=g) for j in (0, 1) for d in (0, 1, 2)}
+        contexts = {
+            (j, d): typical[j] + 0.01 * torch.randn(n_rows, 2 * obs_dim + act_dim + 1, generator=g)
+            for j in (0, 1)
+            for d in (0, 1, 2)
+        }
 
         def effect(method, model, hypernet, args):
-            state = {"args": vars(args), "dims": (obs_dim, act_dim), "model": model.state_dict(), "hypernet": hypernet.state_dict()}
+            state = {
+                "args": vars(args),
+                "dims": (obs_dim, act_dim),
+                "model": model.state_dict(),
+                "hypernet": hypernet.state_dict(),
+            }
             args, model, weights_for = context_effect.build(method, state)
             model.eval()
             return context_effect.context_effect(method, model, weights_for, args, batches, contexts)
@@ -292,7 +394,9 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     assert "| claw | reach | I | 2 | online_return |" in summary and "| offline_return | 0 | 2 |" in summary
     rows, curves, _ = aggregate.summarize(aggregate.load_runs(str(tmp_path)))
     assert figures.figure_exp1(rows, curves, str(tmp_path)) == "exp1: no DR/ST/Oracle runs"
-    effect = context_effect.main([str(tmp_path / runs[0].name / "checkpoint.pt"), "--episodes", "1", "--draws", "2", "--batch", "8"])
+    effect = context_effect.main(
+        [str(tmp_path / runs[0].name / "checkpoint.pt"), "--episodes", "1", "--draws", "2", "--batch", "8"]
+    )
     assert sorted(effect) == list(range(6)) and "| policy action |" in capsys.readouterr().out
     assert sweep.launch(runs + [control], str(tmp_path), workers=1, dry_run=False) == 0  # a second call: nothing left
     out = capsys.readouterr().out
@@ -300,24 +404,47 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     result = json.load(open(tmp_path / control.name / "controls.json"))
     assert sorted(result["size"]) == ["1", "2"] and sorted(result["swap"]["own"]["offline"]) == [str(j) for j in range(6)]
     assert "## Context size" in (tmp_path / control.name / "controls.md").read_text()
-    assert str(tmp_path / control.name) in dict(aggregate.summarize(aggregate.load_runs(str(tmp_path)))[2])  # not a training run
+    # not a training run
+    assert str(tmp_path / control.name) in dict(aggregate.summarize(aggregate.load_runs(str(tmp_path)))[2])
     # each finished run was archived as it ended: the archive alone aggregates to the same tables, and a launcher
     # whose sweep directory is gone (a lost machine) reruns nothing it holds
     assert sorted(os.listdir(archive)) == sorted(r.name for r in runs + [control])
-    assert sorted(os.listdir(os.path.join(archive, control.name))) == ["controls.json", "controls.md", "run.json", "scalars.json", "stdout.log"]
+    assert sorted(os.listdir(os.path.join(archive, control.name))) == [
+        "controls.json",
+        "controls.md",
+        "run.json",
+        "scalars.json",
+        "stdout.log",
+    ]
     # a finished CLAW run's archive keeps what its context does to its predictions and whether its adapters tell the
     # environments apart, both measured on the full checkpoint, and its weights
     assert sorted(os.listdir(os.path.join(archive, runs[0].name))) == [
-        "checkpoint.pt", "context_effect.md", "inspect_adapters.txt", "run.json", "scalars.json", "stdout.log"]
+        "checkpoint.pt",
+        "context_effect.md",
+        "inspect_adapters.txt",
+        "run.json",
+        "scalars.json",
+        "stdout.log",
+    ]
     effect_report = open(os.path.join(archive, runs[0].name, "context_effect.md")).read()
-    assert "claw_tdmpc2.py, family reach" in effect_report and "| policy action |" in effect_report and "| swap / same |" in effect_report
+    assert (
+        "claw_tdmpc2.py, family reach" in effect_report
+        and "| policy action |" in effect_report
+        and "| swap / same |" in effect_report
+    )
     adapters_report = open(os.path.join(archive, runs[0].name, "inspect_adapters.txt")).read()
-    assert all(line in adapters_report for line in ("delta phi (world model)", "merged update", "gradient norms of one world-model loss"))
+    assert all(
+        line in adapters_report
+        for line in ("delta phi (world model)", "merged update", "gradient norms of one world-model loss")
+    )
     sweep_runs, archived_runs = aggregate.load_runs(str(tmp_path)), aggregate.load_runs(archive)
     assert aggregate.summarize(archived_runs)[:2] == aggregate.summarize(sweep_runs)[:2]
-    assert repr(aggregate.controls_rows(archived_runs)) == repr(aggregate.controls_rows(sweep_runs)) != "[]"  # repr: nan == nan
+    # repr: nan == nan
+    assert repr(aggregate.controls_rows(archived_runs)) == repr(aggregate.controls_rows(sweep_runs)) != "[]"
+    # each run once
     assert [r["dir"] for r in aggregate.load_runs([str(tmp_path / "lost"), archive, str(tmp_path)])] == [
-        os.path.join(archive, r.name) for r in sorted(runs + [control], key=lambda r: r.name)]  # each run once
+        os.path.join(archive, r.name) for r in sorted(runs + [control], key=lambda r: r.name)
+    ]
     assert sweep.launch(runs + [control], str(tmp_path / "lost"), workers=1, dry_run=False, archive=archive) == 0
     out = capsys.readouterr().out
     assert all(f"skip (archived) {r.name}" in out for r in runs + [control]) and not (tmp_path / "lost").exists()
@@ -336,7 +463,9 @@ def test_carried_runs_outlive_their_machine_and_archived_weights_feed_the_contro
     archive, carry = str(tmp_path / "archive"), str(tmp_path / "carry")
     carried = []
     monkeypatch.setattr(sweep.RunJob, "CARRY_POLL_S", 0.1)
-    monkeypatch.setattr(sweep, "carry_run", lambda run_dir, to: carried.append(run_dir) or archive_module.carry_run(run_dir, to))
+    monkeypatch.setattr(
+        sweep, "carry_run", lambda run_dir, to: carried.append(run_dir) or archive_module.carry_run(run_dir, to)
+    )
     first = tmp_path / "first"  # a machine that trains the run, then is lost
     assert sweep.launch([run], str(first), workers=1, dry_run=False, archive=archive, carry=carry) == 0
     # copied while it ran (each time it saved progress), removed once archived
@@ -364,7 +493,7 @@ def test_carried_runs_outlive_their_machine_and_archived_weights_feed_the_contro
     assert f"would restore {os.path.join(carry, run.name)}" in capsys.readouterr().out and not third.exists()
     assert sweep.launch([run], str(third), workers=1, dry_run=False, archive=archive, carry=carry) == 0
     out = capsys.readouterr().out
-    assert f"restored     {os.path.join(carry, run.name)} -> {third}" in out and f"resume " in out
+    assert f"restored     {os.path.join(carry, run.name)} -> {third}" in out and "resume " in out
     assert sweep.read_status(str(third / run.name))["resumed"] is True and sweep.is_archived(archive, run.name)
     assert os.listdir(carry) == []
     with pytest.raises(SystemExit, match="--carry needs --archive"):
@@ -382,7 +511,10 @@ def test_controls_recipe_evaluates_the_exp12_claw_checkpoints_once_they_are_done
         assert run.needs == trained.name and command[1].endswith("diagnostics/context_controls.py")
         assert command[2] == str(tmp_path / trained.name / "checkpoint.pt")
         assert command[-4:] == ["--json", str(run_dir / "controls.json"), "--out", str(run_dir / "controls.md")]
-        assert command[command.index("--eval-episodes") + 1] == {"reach": "10", "walker": "2", "push": "10", "go1": "2"}[run.family]
+        assert (
+            command[command.index("--eval-episodes") + 1]
+            == {"reach": "10", "walker": "2", "push": "10", "go1": "2"}[run.family]
+        )
         if run.family == "walker":  # a distant strength, not the neighbouring one
             assert command[command.index("--swap-offset") + 1] == "10"
         assert "--compile" in command and "--seed" not in command and "--no-cuda" not in command  # the checkpoint's own
@@ -449,8 +581,9 @@ def test_encoder_probe_learns_a_goal_that_shifts_the_reward():
     train = contexts(0, 4) + contexts(1, 4)
     test = contexts(0, 3) + contexts(1, 3)
     draw = lambda step: [train[step % 4], train[4 + step % 4]]  # noqa: E731
-    hits, ratio = context_identifiability.train_encoder_probe(draw, [0, 1], test, [0] * 3 + [1] * 3, steps=60,
-                                                              statistics=torch.cat(train))
+    hits, ratio = context_identifiability.train_encoder_probe(
+        draw, [0, 1], test, [0] * 3 + [1] * 3, steps=60, statistics=torch.cat(train)
+    )
     assert hits == 6 and ratio > 1.5
 
 
@@ -460,31 +593,51 @@ def test_learn_recipes_and_budget_training_curves(monkeypatch):
     chosen budget."""
     budget = sweep.recipe("budget", "learn")
     assert sorted((r.family, r.train_env, r.seed) for r in budget) == [
-        ("cheetah_walker", 0, 1), ("cheetah_walker", 0, 2), ("cheetah_walker", 1, 1), ("cheetah_walker", 1, 2),
-        ("go1", 0, 1), ("go1", 0, 2), ("push", 0, 1), ("push", 0, 2)]
+        ("cheetah_walker", 0, 1),
+        ("cheetah_walker", 0, 2),
+        ("cheetah_walker", 1, 1),
+        ("cheetah_walker", 1, 2),
+        ("go1", 0, 1),
+        ("go1", 0, 2),
+        ("push", 0, 1),
+        ("push", 0, 2),
+    ]
     assert len({r.name for r in budget}) == 8 and all("--train-env-id" in r.command("d") for r in budget)
     steps = {r.family: r.extra[r.extra.index("--total-timesteps") + 1] for r in budget}
     assert steps == {"cheetah_walker": "40000", "push": "100000", "go1": "100000"}
     exp12 = sweep.plan_runs(["exp1", "exp2"], "learn")
-    assert {(r.family, r.size) for r in exp12} == {(f, "F") for f in ("reach", "walker", "go1", "push")} and len(exp12) == 4 * 4 * 3
+    assert {(r.family, r.size) for r in exp12} == {(f, "F") for f in ("reach", "walker", "go1", "push")} and len(
+        exp12
+    ) == 4 * 4 * 3
     exp12_steps = {r.family: r.extra[r.extra.index("--total-timesteps") + 1] for r in exp12 if "--total-timesteps" in r.extra}
     assert exp12_steps["push"] == "100000" and exp12_steps["go1"] == "70000"  # the budgets the curves chose
     decoder_and_controls = sweep.plan_runs(["decoder"], "learn")  # Exp 1/2's CLAW runs with --decoder-coef, named apart
     decoder = [r for r in decoder_and_controls if r.method == "claw_decoder"]
     controls = sweep.plan_runs(["controls"], "learn")
     # each followed by the controls experiment's evaluation of its checkpoint
-    assert [(r.method, r.needs, r.extra) for r in decoder_and_controls[len(decoder):]] == [
-        ("controls_decoder", trained.name, r.extra) for trained, r in zip(decoder, controls)]
-    assert [r.command("d")[1:2] + r.command("d")[3:] for r in decoder_and_controls[len(decoder):]] == [
-        r.command("d")[1:2] + r.command("d")[3:] for r in controls]
+    assert [(r.method, r.needs, r.extra) for r in decoder_and_controls[len(decoder) :]] == [
+        ("controls_decoder", trained.name, r.extra) for trained, r in zip(decoder, controls)
+    ]
+    assert [r.command("d")[1:2] + r.command("d")[3:] for r in decoder_and_controls[len(decoder) :]] == [
+        r.command("d")[1:2] + r.command("d")[3:] for r in controls
+    ]
     claw12 = [r for r in exp12 if r.method == "claw"]
     assert [(r.family, r.seed) for r in decoder] == [(r.family, r.seed) for r in claw12]
-    assert all(r.command("d")[1].endswith("claw_tdmpc2.py") and r.command("d")[-2:] == ["--decoder-coef", "1.0"] for r in decoder)
+    assert all(
+        r.command("d")[1].endswith("claw_tdmpc2.py") and r.command("d")[-2:] == ["--decoder-coef", "1.0"] for r in decoder
+    )
     assert [r.command("d")[:-2] for r in decoder] == [r.command("d") for r in claw12]
     assert not {r.name for r in decoder} & {r.name for r in exp12}
     exp45 = sweep.plan_runs(["exp4", "exp5"], "learn")  # at the budget chosen from the curves: 2 x 20,000 steps
-    assert sorted({(r.method, r.rank) for r in exp45}) == [("claw", 1), ("claw", 4), ("claw", 8), ("claw", 16), ("concat", 8),
-                                                            ("film", 8), ("posthoc", 8)]
+    assert sorted({(r.method, r.rank) for r in exp45}) == [
+        ("claw", 1),
+        ("claw", 4),
+        ("claw", 8),
+        ("claw", 16),
+        ("concat", 8),
+        ("film", 8),
+        ("posthoc", 8),
+    ]
     assert len(exp45) == 7 * 3 and all(r.size == "F" and "40000" in r.extra for r in exp45)
     # seed-major across experiments: every experiment's first seed before any second seed
     issue14 = sweep.plan_runs(["exp4", "exp5", "exp1", "exp2", "controls"], "learn")
@@ -498,14 +651,29 @@ def test_learn_recipes_and_budget_training_curves(monkeypatch):
     monkeypatch.setattr(aggregate, "random_policy_return", lambda family, env_id: 10.0 * (env_id + 1))
 
     def run(env_id, seed, returns):  # (step, training-episode return) pairs, as TensorBoard holds them
-        return {"method": "st", "family": "cheetah_walker", "size": "F", "seed": seed, "experiments": ["budget"],
-                "command": f"python st_tdmpc2.py --train-env-id {env_id}", "scalars": {"charts/episodic_return": returns}}
+        return {
+            "method": "st",
+            "family": "cheetah_walker",
+            "size": "F",
+            "seed": seed,
+            "experiments": ["budget"],
+            "command": f"python st_tdmpc2.py --train-env-id {env_id}",
+            "scalars": {"charts/episodic_return": returns},
+        }
 
-    runs = [run(0, 1, [(3000, 10.0), (5000, 30.0), (5500, 50.0)]), run(0, 2, [(4000, 20.0), (6000, 70.0)]),
-            run(1, 1, [(2600, 5.0)]), {"method": "claw", "family": "cheetah_walker", "size": "F", "seed": 1,
-                                       "experiments": ["exp1"], "scalars": {}}]  # no training episode yet: no curve
+    # no training episode yet: no curve
+    runs = [
+        run(0, 1, [(3000, 10.0), (5000, 30.0), (5500, 50.0)]),
+        run(0, 2, [(4000, 20.0), (6000, 70.0)]),
+        run(1, 1, [(2600, 5.0)]),
+        {"method": "claw", "family": "cheetah_walker", "size": "F", "seed": 1, "experiments": ["exp1"], "scalars": {}},
+    ]
     rows = aggregate.training_curves(runs, window=2500)
-    assert [(r["train_env"], r["step"], r["n"], r["mean"]) for r in rows] == [(0, 5000, 2, 20.0), (0, 7500, 2, 60.0), (1, 5000, 1, 5.0)]
+    assert [(r["train_env"], r["step"], r["n"], r["mean"]) for r in rows] == [
+        (0, 5000, 2, 20.0),
+        (0, 7500, 2, 60.0),
+        (1, 5000, 1, 5.0),
+    ]
     assert [r["random_policy"] for r in rows] == [10.0, 10.0, 20.0]
     assert "| 7500 | 2 | 60.0 |" in aggregate.training_markdown(rows)
 
@@ -519,8 +687,8 @@ def test_random_policy_return_is_a_real_rollout():
 
 def test_context_probes_patch_claw_only_while_they_run(monkeypatch):
     import claw_tdmpc2 as claw
-    from diagnostics import context_probes
     from common.envs import make_env
+    from diagnostics import context_probes
 
     plain_forward, plain_collect = claw.ContextEncoder.forward, claw.collect_episodes
 
@@ -561,8 +729,19 @@ def test_figure_intervals_stay_within_what_the_metric_can_take():
 
 
 def test_one_seed_figures_draw_no_error_bars_and_say_n(tmp_path, monkeypatch):
-    rows = [{"method": m, "family": "cheetah_walker", "size": "F", "rank": 8, "metric": "online_return_env0", "n": 1,
-             "mean": v, "ci95": float("nan")} for m, v in (("claw", 190.0), ("posthoc", 25.0))]
+    rows = [
+        {
+            "method": m,
+            "family": "cheetah_walker",
+            "size": "F",
+            "rank": 8,
+            "metric": "online_return_env0",
+            "n": 1,
+            "mean": v,
+            "ci95": float("nan"),
+        }
+        for m, v in (("claw", 190.0), ("posthoc", 25.0))
+    ]
     saved = []
     monkeypatch.setattr(figures.plt.Figure, "savefig", lambda fig, path, **kwargs: saved.append(fig))
 
@@ -570,7 +749,9 @@ def test_one_seed_figures_draw_no_error_bars_and_say_n(tmp_path, monkeypatch):
         ax = saved[-1].axes[0]
         bars = [c for c in ax.containers if isinstance(c, figures.matplotlib.container.ErrorbarContainer)]
         assert bars
-        return ax.get_title(), [seg for c in bars for coll in c.lines[2] for seg in coll.get_segments() if np.isfinite(seg).any()]
+        return ax.get_title(), [
+            seg for c in bars for coll in c.lines[2] for seg in coll.get_segments() if np.isfinite(seg).any()
+        ]
 
     assert figures.figure_exp5(rows, [], str(tmp_path)) is None
     assert drawn_error_bars() == ("size F, rank 8, n = 1", [])

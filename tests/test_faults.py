@@ -1,6 +1,7 @@
 """Bad values and faults (every script alike): flags checked against their ranges before any work, a diverging run
 stopped with the last finite checkpoint kept, no run directory reused without a word, SIGINT saving at the next exact
 resume point, a full disk during a save, and the --resume / --checkpoint / --eval-only flag contract."""
+
 import os
 import signal
 import subprocess
@@ -20,9 +21,36 @@ import st_tdmpc2 as st
 SCRIPTS = [claw, dr, st, oracle, film, concat, posthoc]
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # a run of a few seconds: size I, a 600-step prefill (one 100-step episode per Reach goal), a tiny planner
-TINY = ["--family", "reach", "--model-size", "I", "--rank", "2", "--no-cuda", "--threads", "1", "--compile", "off",
-        "--seed-steps", "100", "--burst-updates", "2", "--batch-size", "16", "--num-samples", "16", "--num-elites", "4",
-        "--num-pi-trajs", "2", "--iterations", "1", "--log-every", "50", "--no-evaluate-after-training"]
+TINY = [
+    "--family",
+    "reach",
+    "--model-size",
+    "I",
+    "--rank",
+    "2",
+    "--no-cuda",
+    "--threads",
+    "1",
+    "--compile",
+    "off",
+    "--seed-steps",
+    "100",
+    "--burst-updates",
+    "2",
+    "--batch-size",
+    "16",
+    "--num-samples",
+    "16",
+    "--num-elites",
+    "4",
+    "--num-pi-trajs",
+    "2",
+    "--iterations",
+    "1",
+    "--log-every",
+    "50",
+    "--no-evaluate-after-training",
+]
 
 
 def args_for(script, tmp_path, **overrides):
@@ -50,11 +78,15 @@ BAD = [
 
 @pytest.mark.parametrize("script", SCRIPTS, ids=lambda s: s.__name__)
 def test_out_of_range_flags_are_refused_before_any_work(script, tmp_path):
-    cases = BAD + ([(dict(model_size="I", rank=9), "--rank must be in 1..8")] if "rank" in script.Args.__dataclass_fields__ else [])
+    cases = BAD + (
+        [(dict(model_size="I", rank=9), "--rank must be in 1..8")] if "rank" in script.Args.__dataclass_fields__ else []
+    )
     if script is posthoc:  # cheetah_walker's episodes are 500 steps
         cases = [(o, m) if "horizon" not in o else (dict(horizon=500), "--horizon must be in 1..499") for o, m in cases]
     for overrides, message in cases:
-        with pytest.raises(SystemExit, match=message.replace("(", r"\(").replace(")", r"\)").replace(".", r"\.").replace("+", r"\+")):
+        with pytest.raises(
+            SystemExit, match=message.replace("(", r"\(").replace(")", r"\)").replace(".", r"\.").replace("+", r"\+")
+        ):
             script.main(args_for(script, tmp_path, **overrides))
         assert not os.path.exists(tmp_path / "run"), overrides  # nothing written
     with pytest.raises(SystemExit, match="--checkpoint is read by --eval-only only"):
@@ -72,9 +104,25 @@ def test_a_diverging_run_stops_with_the_step_and_the_last_finite_checkpoint(tmp_
 
 
 def tiny_args(script) -> dict:
-    return dict(family="reach", model_size="I", rank=2, cuda=False, compile="off", seed_steps=100, burst_updates=2,
-                batch_size=16, num_samples=16, num_elites=4, num_pi_trajs=2, iterations=1, total_timesteps=700,
-                context_pool_episodes=2, context_episodes=1, evaluate_after_training=False, log_every=50)
+    return dict(
+        family="reach",
+        model_size="I",
+        rank=2,
+        cuda=False,
+        compile="off",
+        seed_steps=100,
+        burst_updates=2,
+        batch_size=16,
+        num_samples=16,
+        num_elites=4,
+        num_pi_trajs=2,
+        iterations=1,
+        total_timesteps=700,
+        context_pool_episodes=2,
+        context_episodes=1,
+        evaluate_after_training=False,
+        log_every=50,
+    )
 
 
 def test_a_run_directory_holding_a_run_is_refused_and_overwrite_starts_over(tmp_path, capsys):
@@ -83,8 +131,11 @@ def test_a_run_directory_holding_a_run_is_refused_and_overwrite_starts_over(tmp_
     args.pop("context_pool_episodes")
     dr.main(dr.Args(**args))
     first = os.path.getmtime(run_dir / "checkpoint.pt")
-    with pytest.raises(SystemExit, match=f"--run-dir {run_dir} already holds a run .checkpoint.pt.; continue it with --resume "
-                                         f"{run_dir / 'checkpoint.pt'}, or start over with --overwrite"):
+    with pytest.raises(
+        SystemExit,
+        match=f"--run-dir {run_dir} already holds a run .checkpoint.pt.; continue it with --resume "
+        f"{run_dir / 'checkpoint.pt'}, or start over with --overwrite",
+    ):
         dr.main(dr.Args(**args))
     assert os.path.getmtime(run_dir / "checkpoint.pt") == first
     dr.main(dr.Args(**args, overwrite=True))
@@ -101,7 +152,9 @@ def test_a_full_disk_during_a_save_gives_one_line_and_keeps_the_previous_file(tm
         raise RuntimeError("[enforce fail at inline_container.cc:664] . unexpected pos 128 vs 64")
 
     monkeypatch.setattr(claw.torch, "save", full_disk)
-    with pytest.raises(SystemExit, match=r"error: cannot write .*checkpoint.pt \(\[enforce fail.*MiB free\); the previous one is intact"):
+    with pytest.raises(
+        SystemExit, match=r"error: cannot write .*checkpoint.pt \(\[enforce fail.*MiB free\); the previous one is intact"
+    ):
         claw.atomic_save({"global_step": 2}, path)
     monkeypatch.undo()
     assert not os.path.exists(path + ".tmp")
@@ -110,7 +163,11 @@ def test_a_full_disk_during_a_save_gives_one_line_and_keeps_the_previous_file(tm
 
 def test_flags_typed_on_the_command_line_are_checked_even_at_their_default():
     assert claw.typed_flags(["--num-samples", "512", "--no-cuda", "--rank=4", "--family", "reach"]) == {
-        "num_samples", "cuda", "rank", "family"}
+        "num_samples",
+        "cuda",
+        "rank",
+        "family",
+    }
     saved = vars(claw.Args(num_samples=64, online_eval_steps=20))
     with pytest.raises(SystemExit, match="--num-samples 512 conflicts with 64"):  # typed: 512 is the default, yet given
         claw.adopt_args(claw.Args(), saved, None, "ckpt", typed={"num_samples"})
@@ -119,7 +176,9 @@ def test_flags_typed_on_the_command_line_are_checked_even_at_their_default():
     assert args.num_samples == 64
     # --eval-only: the run's own evaluation settings unless given anew
     args = claw.Args(online_eval_steps=50)
-    claw.adopt_args(args, saved, claw.EVALUATION_FLAGS, "ckpt", typed={"online_eval_steps"}, free=claw.RESUME_FREE + claw.EVALUATION_FLAGS)
+    claw.adopt_args(
+        args, saved, claw.EVALUATION_FLAGS, "ckpt", typed={"online_eval_steps"}, free=claw.RESUME_FREE + claw.EVALUATION_FLAGS
+    )
     assert (args.online_eval_steps, args.num_samples) == (50, 64)
     assert "Exp 1 50 online agent steps" in claw.describe_evaluation(args)
 
@@ -130,8 +189,9 @@ def test_sigint_saves_at_the_next_episode_end_and_resume_ends_like_an_uninterrup
     script = [sys.executable, os.path.join(REPO, "dr_tdmpc2.py"), *TINY, "--total-timesteps", "1000"]
     env = {**os.environ, "MUJOCO_GL": "disable", "OMP_NUM_THREADS": "1"}
     subprocess.run(script + ["--run-dir", str(tmp_path / "whole")], env=env, check=True, capture_output=True)
-    run = subprocess.Popen(script + ["--run-dir", str(tmp_path / "cut")], env=env, stdout=subprocess.PIPE,
-                           stderr=subprocess.STDOUT, text=True)
+    run = subprocess.Popen(
+        script + ["--run-dir", str(tmp_path / "cut")], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
     lines = []
     for line in run.stdout:
         lines.append(line)
@@ -142,8 +202,12 @@ def test_sigint_saves_at_the_next_episode_end_and_resume_ends_like_an_uninterrup
     assert "SIGINT: stopped at step 700; resume with: python dr_tdmpc2.py --resume" in text
     assert "Traceback" not in text
     assert torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=False)["global_step"] == 700
-    subprocess.run([sys.executable, os.path.join(REPO, "dr_tdmpc2.py"), "--resume", str(tmp_path / "cut" / "checkpoint.pt")],
-                   env=env, check=True, capture_output=True)
+    subprocess.run(
+        [sys.executable, os.path.join(REPO, "dr_tdmpc2.py"), "--resume", str(tmp_path / "cut" / "checkpoint.pt")],
+        env=env,
+        check=True,
+        capture_output=True,
+    )
     whole = torch.load(tmp_path / "whole" / "checkpoint.pt", weights_only=False)["model"]
     resumed = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=False)["model"]
     assert all(torch.equal(whole[k], resumed[k]) for k in whole)

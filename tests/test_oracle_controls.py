@@ -1,16 +1,17 @@
 """diagnostics/oracle_controls.py: the own arm sees what the Oracle is evaluated on, the swapped arm another environment's
 parameter on the same physics, arms are paired and deterministic, interrupted runs are taken up, bad input is one line."""
+
 import json
 import os
 
 import numpy as np
 import pytest
 import torch
+from test_baselines_gradient import tiny_args
 
 import oracle_tdmpc2 as oracle
-from diagnostics import oracle_controls
 from common.envs import env_param, make_env
-from test_baselines_gradient import tiny_args
+from diagnostics import oracle_controls
 
 N_ENVS = 6  # reach
 
@@ -23,8 +24,11 @@ def checkpoint(tmp_path_factory):
 
 
 def test_told_env_keeps_the_physics_and_replaces_only_the_parameter():
-    own, told, plain = (oracle_controls.told_env("reach", 2, 2, seed=5), oracle_controls.told_env("reach", 2, 4, seed=5),
-                        make_env("reach", 2, oracle=True, seed=5))
+    own, told, plain = (
+        oracle_controls.told_env("reach", 2, 2, seed=5),
+        oracle_controls.told_env("reach", 2, 4, seed=5),
+        make_env("reach", 2, oracle=True, seed=5),
+    )
     rng = np.random.default_rng(0)
     obs = [env.reset(seed=5)[0] for env in (own, told, plain)]
     for _ in range(20):
@@ -42,13 +46,15 @@ def test_arms_feed_the_planner_own_and_told_parameters_and_are_paired(checkpoint
         seen.append(obs[-3:].clone())
         return oracle.plan(model, weights, obs, *rest, **kw)
 
-    result = oracle_controls.controls(checkpoint, swap_offset=2, env_ids=[1, 5], eval_episodes=1, plan=spy, log=lambda line: None)
+    result = oracle_controls.controls(
+        checkpoint, swap_offset=2, env_ids=[1, 5], eval_episodes=1, plan=spy, log=lambda line: None
+    )
     assert list(result["envs"]) == [1, 5] and [r["told"] for r in result["envs"].values()] == [3, 1]
     assert all(np.isfinite([r["own"], r["swapped"]]).all() for r in result["envs"].values())
     per_arm = len(seen) // 4  # 100-step episodes, one planner call each step
     assert per_arm == 100
     for arm, told in enumerate([1, 3, 5, 1]):  # env 1 own, env 1 told 3, env 5 own, env 5 told 1
-        for obs_param in seen[arm * per_arm:(arm + 1) * per_arm]:
+        for obs_param in seen[arm * per_arm : (arm + 1) * per_arm]:
             np.testing.assert_array_equal(obs_param.numpy(), env_param("reach", told))
     loaded = oracle_controls.load(checkpoint)
     again = oracle_controls.arm_return(loaded, oracle.plan, 1, 3, 1)

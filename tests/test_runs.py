@@ -1,5 +1,6 @@
 """Runs a user can trust (every script alike): arguments checked before any work, checked checkpoints,
 --resume with the saved arguments, progress and start-up lines, duplicated TensorBoard steps reported."""
+
 import json
 import os
 import re
@@ -9,8 +10,8 @@ import pytest
 import torch
 import tyro
 
-import common.evaluation as common_evaluation
 import claw_tdmpc2 as claw
+import common.evaluation as common_evaluation
 import concat_tdmpc2 as concat
 import dr_tdmpc2 as dr
 import film_tdmpc2 as film
@@ -29,8 +30,12 @@ def args_for(script, tmp_path, **overrides):
 
 def fake_checkpoint(path, script, method=None, **args):
     """The parts of a checkpoint that are read before any work: method and arguments."""
-    state = {"method": method or os.path.basename(script.__file__), "args": vars(args_for(script, path.parent, **args)),
-             "model": {}, "global_step": 0}
+    state = {
+        "method": method or os.path.basename(script.__file__),
+        "args": vars(args_for(script, path.parent, **args)),
+        "model": {},
+        "global_step": 0,
+    }
     torch.save(state, path)
     return str(path)
 
@@ -51,11 +56,26 @@ def test_bad_counts_and_budgets_fail_before_any_work(script, tmp_path):
         (dict(eval_only=True, resume="x", checkpoint="x"), "does not exist|exclude each other"),
     ]
     if script is posthoc:  # a pass is half the budget; each has its own 3-episode prefill of one environment
-        cases.append((dict(total_timesteps=3000), r"half of --total-timesteps \(one pass\): 1500 must exceed the random-action prefill of 1500 steps"))
+        cases.append(
+            (
+                dict(total_timesteps=3000),
+                r"half of --total-timesteps \(one pass\): 1500 must exceed the random-action prefill of 1500 steps",
+            )
+        )
     elif script is st:  # one environment: 5 walker episodes
-        cases.append((dict(family="walker", total_timesteps=2500), r"--total-timesteps: 2500 must exceed the random-action prefill of 2500 steps"))
+        cases.append(
+            (
+                dict(family="walker", total_timesteps=2500),
+                r"--total-timesteps: 2500 must exceed the random-action prefill of 2500 steps",
+            )
+        )
     else:  # one 500-step episode of each of walker's 20 environments
-        cases.append((dict(family="walker", total_timesteps=5000), r"--total-timesteps: 5000 must exceed the random-action prefill of 10000 steps"))
+        cases.append(
+            (
+                dict(family="walker", total_timesteps=5000),
+                r"--total-timesteps: 5000 must exceed the random-action prefill of 10000 steps",
+            )
+        )
     for overrides, message in cases:
         with pytest.raises(SystemExit, match=message):
             script.main(args_for(script, tmp_path, **overrides))
@@ -72,7 +92,9 @@ def test_help_lists_the_families(capsys):
 def test_another_scripts_checkpoint_is_refused(script, tmp_path):
     path = fake_checkpoint(tmp_path / "claw.pt", claw)
     for args in (args_for(script, tmp_path, eval_only=True, checkpoint=path), args_for(script, tmp_path, resume=path)):
-        with pytest.raises(SystemExit, match=f"claw.pt is a claw_tdmpc2.py checkpoint, expected one written by {script.__name__}.py"):
+        with pytest.raises(
+            SystemExit, match=f"claw.pt is a claw_tdmpc2.py checkpoint, expected one written by {script.__name__}.py"
+        ):
             script.main(args)
     # a checkpoint from before the method was recorded is told apart by its run's exp_name
     state = torch.load(path, weights_only=False)
@@ -88,8 +110,11 @@ def test_unreadable_checkpoints_give_one_line(tmp_path):
     (tmp_path / "truncated.pt").write_bytes(data[: len(data) // 2])
     (tmp_path / "text.pt").write_text("not a checkpoint")
     torch.save([1, 2, 3], tmp_path / "list.pt")
-    for name, message in (("truncated", r"cannot read checkpoint .*truncated.pt \(truncated, corrupt"), ("text", r"cannot read checkpoint .*text.pt \(truncated"),
-                          ("list", "list.pt is not a checkpoint of these scripts")):
+    for name, message in (
+        ("truncated", r"cannot read checkpoint .*truncated.pt \(truncated, corrupt"),
+        ("text", r"cannot read checkpoint .*text.pt \(truncated"),
+        ("list", "list.pt is not a checkpoint of these scripts"),
+    ):
         with pytest.raises(SystemExit, match=message) as error:
             claw.main(args_for(claw, tmp_path, resume=str(tmp_path / f"{name}.pt")))
         assert "\n" not in str(error.value)
@@ -127,10 +152,15 @@ def test_start_up_and_progress_lines():
     now = time.time()
     line = claw.progress_text(50, 150, 0, now - 10, now - 20, [(1.0, 1.0), (3.0, 0.0)], "reach")
     assert re.fullmatch(r"return 2\.0 \| success 0\.50 \| SPS [45] \| elapsed 0:00:(19|20) \| ETA 0:00:(19|20)", line), line
-    assert claw.progress_text(10, 20, 0, now - 1, now - 1, [], "walker").startswith("return - | SPS")  # no success off Meta-World
+    # no success off Meta-World
+    assert claw.progress_text(10, 20, 0, now - 1, now - 1, [], "walker").startswith("return - | SPS")
     if not torch.cuda.is_available():
         text = claw.describe_device(claw.Args(model_size="A"), torch.device("cpu"))
-        assert "device: cpu" in text and "warning: --cuda was asked for but CUDA is not available" in text and "--model-size F" in text
+        assert (
+            "device: cpu" in text
+            and "warning: --cuda was asked for but CUDA is not available" in text
+            and "--model-size F" in text
+        )
     table = claw.hyperparameter_text(claw.Args(), total_timesteps=50_000, seed_steps=1000, discount=0.99, device="cpu")
     assert "|total_timesteps|50000|" in table and "|seed_steps|1000|" in table and "|device|cpu|" in table
     assert "|git_commit|" in table and "|git_commit||" not in table
@@ -145,11 +175,15 @@ def test_aggregate_reports_duplicated_steps(tmp_path, capsys):
         writer.add_scalar("eval/online/episodic_return", value, 100)
         writer.add_scalar("eval/offline/episodic_return", value, 0)
         writer.close()
-    (run_dir / "run.json").write_text(json.dumps({"method": "claw", "family": "reach", "size": "I", "rank": 2, "seed": 1, "status": "done"}))
+    (run_dir / "run.json").write_text(
+        json.dumps({"method": "claw", "family": "reach", "size": "I", "rank": 2, "seed": 1, "status": "done"})
+    )
     aggregate.main([str(tmp_path)])
     out = capsys.readouterr().out
     assert f"warning: {run_dir} has duplicated steps in 2 tag(s)" in out
-    assert "Runs with duplicated TensorBoard steps" in out and "claw__reach__I__r2__s1" in (tmp_path / "summary.md").read_text()
+    assert (
+        "Runs with duplicated TensorBoard steps" in out and "claw__reach__I__r2__s1" in (tmp_path / "summary.md").read_text()
+    )
     assert aggregate.load_runs(str(tmp_path))[0]["scalars"]["eval/online/episodic_return"] == [(100, 30.0)]  # the last value
 
 
@@ -185,7 +219,12 @@ def test_a_run_killed_in_its_burst_resumes_from_its_prefill(tmp_path, capsys, mo
     monkeypatch.undo()
     checkpoint = os.path.join(args.run_dir, "checkpoint.pt")
     state = torch.load(checkpoint, weights_only=False)
-    assert (state["global_step"], state["burst_left"], state["replay"]["size"], state["method"]) == (600, 5, 600, "claw_tdmpc2.py")
+    assert (state["global_step"], state["burst_left"], state["replay"]["size"], state["method"]) == (
+        600,
+        5,
+        600,
+        "claw_tdmpc2.py",
+    )
     capsys.readouterr()
     claw.main(claw.Args(resume=checkpoint))  # no new context pool or prefill: the burst again, then training
     out = capsys.readouterr().out
@@ -243,18 +282,33 @@ def raise_at_step(progress_text, step: int):
 # script, its tiny arguments, and kill points, in the order one run meets them: (patched name, wrapper,
 # the step of the last checkpoint before the kill)
 EXACT = {
-    "claw": (claw, dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100), [
-        ("update", lambda f: raise_on_call(f, 3), 600),  # in the burst: the checkpoint after the prefill
-        ("progress_text", lambda f: raise_at_step(f, 620), 600),  # after the burst, before an episode ends
-        ("progress_text", lambda f: raise_at_step(f, 760), 700),  # after a periodic checkpoint at an episode end
-        ("online_adaptation", lambda f: raise_on_call(f, 3), 800)]),  # in the final evaluation, goal 2
-    "dr": (dr, dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100, offline_adapt_steps=(0, 2)), [
-        ("progress_text", lambda f: raise_at_step(f, 760), 700),
-        ("offline_adaptation", lambda f: raise_on_call(f, 1), 800),  # in goal 0's evaluation: nothing to keep
-        ("offline_adaptation", lambda f: raise_on_call(f, 4), 800)]),  # in goal 1's second sweep point
-    "posthoc": (posthoc, dict(family="cheetah_walker", rank=2, total_timesteps=1100, log_every=25, checkpoint_every=550), [
-        ("collect_episodes", lambda f: raise_on_call(f, 1), 550),  # pass 2 begins: pass 1's end is an episode end
-        ("progress_text", lambda f: raise_at_step(f, 1075), 1050)]),  # in pass 2: the checkpoint after its burst
+    "claw": (
+        claw,
+        dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100),
+        [
+            ("update", lambda f: raise_on_call(f, 3), 600),  # in the burst: the checkpoint after the prefill
+            ("progress_text", lambda f: raise_at_step(f, 620), 600),  # after the burst, before an episode ends
+            ("progress_text", lambda f: raise_at_step(f, 760), 700),  # after a periodic checkpoint at an episode end
+            ("online_adaptation", lambda f: raise_on_call(f, 3), 800),  # in the final evaluation, goal 2
+        ],
+    ),
+    "dr": (
+        dr,
+        dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100, offline_adapt_steps=(0, 2)),
+        [
+            ("progress_text", lambda f: raise_at_step(f, 760), 700),
+            ("offline_adaptation", lambda f: raise_on_call(f, 1), 800),  # in goal 0's evaluation: nothing to keep
+            ("offline_adaptation", lambda f: raise_on_call(f, 4), 800),  # in goal 1's second sweep point
+        ],
+    ),
+    "posthoc": (
+        posthoc,
+        dict(family="cheetah_walker", rank=2, total_timesteps=1100, log_every=25, checkpoint_every=550),
+        [
+            ("collect_episodes", lambda f: raise_on_call(f, 1), 550),  # pass 2 begins: pass 1's end is an episode end
+            ("progress_text", lambda f: raise_at_step(f, 1075), 1050),  # in pass 2: the checkpoint after its burst
+        ],
+    ),
 }
 
 
@@ -277,7 +331,9 @@ def test_killed_and_resumed_runs_equal_uninterrupted_ones(name, tmp_path, capsys
         owner = common_evaluation if attr.endswith("_adaptation") else script  # the protocols live in common/
         monkeypatch.setattr(owner, attr, wrap(getattr(owner, attr)))
         with pytest.raises(KeyboardInterrupt):
-            script.main(script.Args(resume=checkpoint) if i else script.Args(**{**vars(args), "run_dir": os.path.dirname(checkpoint)}))
+            script.main(
+                script.Args(resume=checkpoint) if i else script.Args(**{**vars(args), "run_dir": os.path.dirname(checkpoint)})
+            )
         monkeypatch.undo()
         assert torch.load(checkpoint, weights_only=False)["global_step"] == saved_step, attr
     capsys.readouterr()
@@ -291,8 +347,12 @@ def test_killed_and_resumed_runs_equal_uninterrupted_ones(name, tmp_path, capsys
     # an evaluation killed after some environments takes them from its progress file; the rest and the
     # family results equal the uninterrupted run's
     finished = {"claw": 2, "dr": 1, "posthoc": 0}[name]
-    assert (f"resumed the evaluation from {tmp_path / 'killed' / 'evaluation_progress.pt'}: {finished} environments done" in out) == (finished > 0)
-    assert eval_lines(out) == [line for line in eval_lines(whole_out) if not any(line.startswith(f"eval env {e}:") for e in range(finished))]
+    assert (
+        f"resumed the evaluation from {tmp_path / 'killed' / 'evaluation_progress.pt'}: {finished} environments done" in out
+    ) == (finished > 0)
+    assert eval_lines(out) == [
+        line for line in eval_lines(whole_out) if not any(line.startswith(f"eval env {e}:") for e in range(finished))
+    ]
     assert not os.path.exists(tmp_path / "killed" / "evaluation_progress.pt")
 
 

@@ -2,6 +2,7 @@
 
 Both run a tiny dr_tdmpc2.py in a subprocess: W&B patches TensorBoard for the whole process, and
 MuJoCo picks its GL backend (MUJOCO_GL) when it is imported, while the test run has MUJOCO_GL=disable."""
+
 import ctypes.util
 import glob
 import os
@@ -15,23 +16,45 @@ import dr_tdmpc2 as dr
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # Size I on reach (6 environments, 100-step episodes), tiny planner and batch, no online evaluation.
-TINY = dict(family="reach", model_size="I", rank=2, total_timesteps=700, seed_steps=100, burst_updates=5, batch_size=16,
-            num_samples=16, num_elites=4, num_pi_trajs=2, iterations=1, context_episodes=1, online_eval_steps=0,
-            eval_episodes=1, offline_adapt_steps=(0,), log_every=20, checkpoint_every=10_000, cuda=False, threads=1,
-            evaluate_after_training=False)
+TINY = dict(
+    family="reach",
+    model_size="I",
+    rank=2,
+    total_timesteps=700,
+    seed_steps=100,
+    burst_updates=5,
+    batch_size=16,
+    num_samples=16,
+    num_elites=4,
+    num_pi_trajs=2,
+    iterations=1,
+    context_episodes=1,
+    online_eval_steps=0,
+    eval_episodes=1,
+    offline_adapt_steps=(0,),
+    log_every=20,
+    checkpoint_every=10_000,
+    cuda=False,
+    threads=1,
+    evaluate_after_training=False,
+)
 
 
 def run_dr(args: dict, env: dict, setup: str = "") -> subprocess.CompletedProcess:
     code = f"{setup}\nimport dr_tdmpc2 as s\ns.main(s.Args(**{args!r}))"
-    result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env={**os.environ, **env}, capture_output=True, text=True, timeout=600)
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env={**os.environ, **env}, capture_output=True, text=True, timeout=600
+    )
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     return result
 
 
 def test_track_writes_an_offline_wandb_run_with_the_scalars_and_config(tmp_path):
     wandb_env = {f"WANDB_{key}": str(tmp_path / key.lower()) for key in ("DIR", "CACHE_DIR", "CONFIG_DIR", "DATA_DIR")}
-    run_dr({**TINY, "run_dir": str(tmp_path / "run"), "track": True, "wandb_project_name": "claw-test"},
-           {**wandb_env, "WANDB_MODE": "offline", "WANDB_SILENT": "true"})
+    run_dr(
+        {**TINY, "run_dir": str(tmp_path / "run"), "track": True, "wandb_project_name": "claw-test"},
+        {**wandb_env, "WANDB_MODE": "offline", "WANDB_SILENT": "true"},
+    )
     runs = glob.glob(str(tmp_path / "dir" / "wandb" / "offline-run-*"))
     assert len(runs) == 1, os.listdir(tmp_path / "dir")
     (records,) = glob.glob(os.path.join(runs[0], "run-*.wandb"))  # what `wandb sync` would upload
@@ -53,8 +76,11 @@ def test_capture_video_records_the_first_offline_episode_of_every_environment(tm
     if ctypes.util.find_library("OSMesa") is None:
         pytest.skip("no OSMesa (Debian: apt-get install libosmesa6; .ci/run installs it)")
     # 64 x 48 frames keep software rendering (OSMesa) cheap; the scripts record 320 x 240
-    result = run_dr({**TINY, "run_dir": str(tmp_path / "run"), "capture_video": True, "evaluate_after_training": True},
-                    {"MUJOCO_GL": "osmesa"}, setup="import common.envs\ncommon.envs.RENDER_SIZE = (48, 64)")
+    result = run_dr(
+        {**TINY, "run_dir": str(tmp_path / "run"), "capture_video": True, "evaluate_after_training": True},
+        {"MUJOCO_GL": "osmesa"},
+        setup="import common.envs\ncommon.envs.RENDER_SIZE = (48, 64)",
+    )
     if "warning: --capture-video records nothing" in result.stdout:
         pytest.fail("no OSMesa here (Debian: apt-get install libosmesa6): " + result.stdout.splitlines()[-1])
     videos = sorted(os.listdir(tmp_path / "run" / "videos"))
