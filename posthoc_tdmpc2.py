@@ -74,8 +74,8 @@ class Args:
     10,000 agent steps (on a 2-core CPU at size F it pays for itself after ~8,000; README "Speed")"""
     total_timesteps: Optional[int] = None
     """pretraining agent steps (planner calls), split in halves between the passes; default 500k"""
-    model_size: Literal["A", "B", "D", "E", "F", "G", "H", "I"] = "F"
-    """TD-MPC2 model size from the paper's size table (A = 5M parameters)"""
+    model_size: Optional[Literal["A", "B", "D", "E", "F", "G", "H", "I"]] = None
+    """TD-MPC2 model size from the paper's size table (A = 5M parameters); default: A where CUDA is used, F on a CPU"""
     rank: int = 8
     """LoRA rank of the generated adapters"""
     dry_run: bool = False
@@ -758,7 +758,11 @@ def main(args: Args, typed: set | None = None):
             free,
         )
         # checkpoints are large: keep only the step
-        purge_step, saved = (saved["global_step"] + 1 if args.resume else None, None)
+        purge_step, saved = saved["global_step"] + 1 if args.resume else None, None
+    if args.model_size is None:  # one line before any work: the paper's size A on a GPU, F on a CPU
+        args.model_size = default_model_size(args)
+        where = "CUDA" if args.model_size == "A" else "a CPU"
+        print(f"model size {args.model_size}: the default on {where} (--model-size A is the paper's size)", flush=True)
     total_timesteps, seed_steps, prefill = validate_args(args)
     random.seed(args.seed)
     np.random.seed(args.seed)
@@ -794,11 +798,10 @@ def main(args: Args, typed: set | None = None):
     if args.capture_video and (problem := render_problem(args.family)):
         print(f"warning: --capture-video records nothing: {problem}", flush=True)
         args.capture_video = False
-    if not args.eval_only:
-        print(
-            f"budget: {total_timesteps} agent steps: a {prefill}-step random prefill, {args.burst_updates} burst updates, then training",
-            flush=True,
-        )
+    if not args.eval_only:  # what the run will do, before it does it
+        burst = f"{args.burst_updates} burst updates"
+        print(f"budget: {total_timesteps} agent steps: a {prefill}-step random prefill, {burst}, then training", flush=True)
+        print(describe_evaluation(args) if args.evaluate_after_training else "evaluation: none", flush=True)
 
     if args.resume and args.run_dir is None:  # keep logging into the interrupted run
         args.run_dir = os.path.dirname(os.path.abspath(args.resume))
@@ -834,6 +837,7 @@ def main(args: Args, typed: set | None = None):
     replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     global_step, train_pass, burst_left, saved_at, saved_step = 0, 0, 0, time.time(), 0
+    clock = RunClock(args, total_timesteps, 1, ep_len)  # the estimate of how long the run takes
 
     def save():  # atomic; also right after the prefill and the burst, and every --checkpoint-minutes
         nonlocal saved_at, saved_step
@@ -858,7 +862,7 @@ def main(args: Args, typed: set | None = None):
 
     first, prev_mean = True, None  # an episode starts at the top of the loop, also where a resumed run continues
     # recent: (return, success) of the last episodes
-    start_time, start_step, recent = (time.time(), global_step, deque(maxlen=10))
+    start_time, start_step, recent = time.time(), global_step, deque(maxlen=10)
     while global_step < total_timesteps:
         if train_pass < (1 if global_step < total_timesteps // 2 else 2):
             # a pass begins (paper Table exp5-posthoc): the base on walker, then the hypernet on cheetah
@@ -878,6 +882,7 @@ def main(args: Args, typed: set | None = None):
                 context = pool.sample(CHEETAH) if train_pass == 2 else None
                 info = update(model, hypernet, optimizers, scale, layout, n_wm, *batch, context, discount, args)
                 stop_if_diverged(info, global_step, checkpoint_path)
+                clock.lap("update")
             burst_left = 0
             save()
         if first:  # a new episode in this pass's environment
@@ -918,6 +923,7 @@ def main(args: Args, typed: set | None = None):
             first = True
         first = first or global_step == total_timesteps // 2  # pass 1 ends: its last episode is cut short
         pool.refresh(global_step)
+        clock.lap("step", global_step)
         if global_step % args.log_every == 0 or global_step == total_timesteps:
             sps = int((global_step - start_step) / (time.time() - start_time))
             for key, value in info.items():
@@ -1086,12 +1092,12 @@ def check_ranges(args: Args):
             f"error: --horizon must be in 1..{episode_length(args.family) - 1} (below {args.family}'s episode "
             f"length), got {args.horizon}"
         )
-    encoder_hidden, _, mlp_hidden, _ = MODEL_SIZES[args.model_size]
+    size = args.model_size or default_model_size(args)
+    encoder_hidden, _, mlp_hidden, _ = MODEL_SIZES[size]
     narrowest = min([*encoder_hidden, mlp_hidden])
     if hasattr(args, "rank") and not 1 <= args.rank <= narrowest:
         raise SystemExit(
-            f"error: --rank must be in 1..{narrowest} (the narrowest adapted layer of model size "
-            f"{args.model_size}), got {args.rank}"
+            f"error: --rank must be in 1..{narrowest} (the narrowest adapted layer of model size {size}), got {args.rank}"
         )
 
 
@@ -1323,6 +1329,43 @@ def describe_device(args: Args, device: torch.device) -> str:
     if device.type == "cpu" and args.model_size in ("A", "B"):
         lines.append(f"hint: model size {args.model_size} is slow on a CPU; --model-size F trains in a fraction of the time")
     return "\n".join(lines)
+
+
+def default_model_size(args: Args) -> str:
+    """Without --model-size: the paper's size A where CUDA is used, F on a CPU (A costs ~74 GFLOP per agent step)."""
+    return "A" if args.cuda and torch.cuda.is_available() else "F"
+
+
+class RunClock:
+    """Times the burst's updates and the first training steps (medians, so a first call's compile does not count) and
+    prints once, after the first 30 training steps, how long the rest of training and the evaluation will take here."""
+
+    def __init__(self, args: Args, total_timesteps: int, n_test_envs: int, episode_length: int):
+        self.args, self.total, self.n_test_envs, self.episode_length = args, total_timesteps, n_test_envs, episode_length
+        self.seconds, self.last, self.printed = {"update": [], "step": []}, None, False
+
+    def lap(self, kind: str, step: int | None = None):
+        """After a burst update (kind "update") or a training step ("step", with global_step)."""
+        now = time.perf_counter()
+        if self.last is not None and self.last[0] == kind:
+            self.seconds[kind].append(now - self.last[1])
+        self.last = (kind, now)
+        if kind == "step" and not self.printed and len(self.seconds["step"]) >= 30:
+            self.printed = True
+            print(self.estimate(step), flush=True)
+
+    def estimate(self, step: int) -> str:
+        args, step_s = self.args, float(np.median(self.seconds["step"]))
+        update_s = float(np.median(self.seconds["update"])) if self.seconds["update"] else step_s / 2
+        sweep = getattr(args, "offline_adapt_steps", (0,))  # gradient methods' Exp 2 sweep; one pass otherwise
+        exp1 = args.online_eval_steps * step_s  # an online step adapts, plans and acts
+        exp2 = len(sweep) * args.eval_episodes * self.episode_length * max(step_s - update_s, 0) + sum(sweep) * update_s
+        evaluation = self.n_test_envs * (exp1 + exp2) if args.evaluate_after_training else 0.0
+        return (
+            f"estimate on this machine: training {hms((self.total - step) * step_s)} more ({1000 * step_s:.0f} ms per "
+            f"agent step), evaluation {hms(evaluation)} ({self.n_test_envs} test environments, Exp 1 {hms(exp1)} and "
+            f"Exp 2 {hms(exp2)} each; shorter: --online-eval-steps, --eval-episodes)"
+        )
 
 
 def git_commit() -> str:
