@@ -1,25 +1,23 @@
-"""What a finished sweep run measured, kept without its checkpoint in a directory small enough to commit.
+"""What a finished sweep run measured, kept without its training state in a directory small enough to commit.
 
-A sweep directory lives on one machine, beside multi-megabyte checkpoints. When the machine is lost, so is every
-finished run's measurement (this happened between the ninth and tenth sessions: 23 finished runs gone, only their
-aggregated tables left, no per-seed values to pool with new seeds). An archived run is its run.json, its
-TensorBoard scalars as JSON (scalars.json), its stdout.log, for an in-context method's run context_effect.md
-(`context_effect.py`: how much the context moves the world model's predictions, measured on the checkpoint), for a
-CLAW run inspect_adapters.txt (`inspect_adapters.py`: do u_con and the adapters tell the environments apart) and,
-for the context controls, controls.json and controls.md: ~100-200 kB for a 50,000-step run, and its checkpoint
-without the replay buffer and optimizer state (WEIGHTS: ~0.4 MB at size F, for evaluation only: the context controls
-of a CLAW run whose sweep directory is gone, re-measured reports, new evaluation-only analyses). `aggregate.py` and
-`figures.py` read an archive like a sweep directory, and `sweep.py --archive DIR` archives each run as it
-finishes and skips the runs the archive holds.
+A sweep directory lives on one machine, beside multi-megabyte checkpoints; an archive keeps each finished run's
+measurements where losing that machine cannot take them. An archived run is its run.json, its TensorBoard scalars as
+JSON (scalars.json), its stdout.log, for an in-context method's run context_effect.md (`context_effect.py`: how much
+the context moves the world model's predictions, measured on the checkpoint), for a CLAW run inspect_adapters.txt
+(`inspect_adapters.py`: do u_con and the adapters tell the environments apart) and, for the context controls,
+controls.json and controls.md, and its checkpoint as weights only (WEIGHTS: no replay buffer, optimizer state or
+context pool; for evaluation: the context controls of a CLAW run whose sweep directory is gone, re-measured
+reports, new evaluation-only analyses). `aggregate.py` and `figures.py` read an archive like a sweep directory, and
+`sweep.py --archive DIR` archives each run as it finishes and skips the runs the archive holds.
 
-A run longer than a machine lives (a session's machine is not always the next session's) is carried: with
-`sweep.py --carry DIR` the launcher copies a live run's directory (checkpoint, evaluation progress, events,
-stdout.log; ~15 MB at size F, mostly the replay buffer) to DIR/<run> each time the run saves progress, removes the
-copy once the run is archived, and, on a machine whose sweep directory lacks the run, copies DIR/<run> back before
-launching: the run resumes from its last checkpoint. Commit DIR before the machine goes.
+A run longer than a machine lives is carried: with `sweep.py --carry DIR` the launcher copies a live run's directory
+(checkpoint, evaluation progress, events, stdout.log; mostly the replay buffer and context pool) to DIR/<run> each
+time the run saves progress, removes the copy once the run is archived, and, on a machine whose sweep directory lacks
+the run, copies DIR/<run> back before launching: the run resumes from its last checkpoint.
 
-    python experiments/archive.py /work/sweeps/learn results/learn/runs   # archive every finished run of a sweep
-    python experiments/archive.py /work/sweeps/learn results/learn/runs --carry results/learn/carry   # and carry the others
+    python experiments/archive.py runs/sweeps/learn results/learn/runs   # archive every finished run of a sweep
+    python experiments/archive.py runs/sweeps/learn results/learn/runs --carry results/learn/carry   # and carry the others
+    python experiments/archive.py --slim results/learn/runs   # rewrite an archive's checkpoints as weights only
 """
 
 from __future__ import annotations
@@ -34,7 +32,7 @@ SCALARS = "scalars.json"
 # copied as they are, where the run wrote them
 KEPT = ("stdout.log", "context_effect.md", "inspect_adapters.txt", "controls.json", "controls.md")
 WEIGHTS = "checkpoint.pt"  # in the archive: the run's checkpoint less what only training resumes from
-TRAINING_ONLY = ("replay", "optimizers")
+TRAINING_ONLY = ("replay", "optimizers", "contexts")  # kept as None: weights only
 NOT_CARRIED = ("run.lock",)  # and the half-written files: *.tmp, *.partial
 
 
@@ -90,8 +88,8 @@ def archive_run(run_dir: str, archive: str) -> str:
 
 
 def save_weights(checkpoint: str, path: str) -> None:
-    """The checkpoint without its replay buffer and optimizer state: the scripts' evaluation tools read it as the
-    full one (--eval-only, context_controls.py, context_effect.py, inspect_adapters.py); training cannot resume from it."""
+    """The checkpoint as weights only (no replay buffer, optimizer state or context pool): --eval-only and the
+    evaluation tools read it as the full one; training cannot resume from it, and a tool that needs the pool says so."""
     import torch
 
     state = torch.load(checkpoint, map_location="cpu", weights_only=False)
@@ -158,9 +156,21 @@ def archive_sweep(root: str, archive: str, carry: str | None = None) -> int:
     return archived
 
 
+def slim_archive(archive: str) -> int:
+    """Rewrites every checkpoint under an archive as weights only (archives written before WEIGHTS dropped the pool)."""
+    slimmed = 0
+    for name in sorted(os.listdir(archive)):
+        path = os.path.join(archive, name, WEIGHTS)
+        if os.path.isfile(path):
+            save_weights(path, path + ".tmp")
+            os.replace(path + ".tmp", path)
+            slimmed += 1
+    return slimmed
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("root", help="sweep directory, e.g. /work/sweeps/learn")
+    parser.add_argument("root", nargs="?", help="sweep directory, e.g. runs/sweeps/learn")
     parser.add_argument("archive", help="archive directory, e.g. results/learn/runs")
     parser.add_argument(
         "--carry",
@@ -168,8 +178,16 @@ def main(argv=None):
         metavar="DIR",
         help="also copy each unfinished run's directory to DIR (e.g. results/learn/carry), as sweep.py --carry does",
     )
+    parser.add_argument("--slim", action="store_true", help="only rewrite the archive's checkpoints as weights only")
     cli = parser.parse_args(argv)
-    if not os.path.isdir(cli.root):
+    if cli.slim:
+        if cli.root is not None or cli.carry:
+            raise SystemExit("archive.py: error: --slim takes the archive directory alone")
+        if not os.path.isdir(cli.archive):
+            raise SystemExit(f"archive.py: error: {cli.archive!r} is not a directory")
+        print(f"rewrote {slim_archive(cli.archive)} checkpoints in {cli.archive} as weights only")
+        return
+    if cli.root is None or not os.path.isdir(cli.root):
         raise SystemExit(f"archive.py: error: {cli.root!r} is not a directory")
     print(f"archived {archive_sweep(cli.root, cli.archive, cli.carry)} finished runs of {cli.root} in {cli.archive}")
 
