@@ -22,7 +22,7 @@ restarted launcher skips runs that are "done" or live (lock held) and resumes, w
 that died (lock free, checkpoint present); it prints a finished run whose recorded command differs
 from the recipe's. Exp 1 and Exp 2 share pretraining runs (each run evaluates both protocols), and
 Exp 3, 4 and 5 share the size-F CLAW runs, so a run needed by several experiments runs once.
-Experiment controls (issue 14) trains nothing: one run per Exp 1/2 family and seed evaluates that CLAW run's
+Experiment controls trains nothing: one run per Exp 1/2 family and seed evaluates that CLAW run's
 checkpoint with diagnostics/context_controls.py (own vs another environment's context, context sizes 1, 3, 10),
 writing controls.json and controls.md in its run directory, with each scale's Exp 1/2 evaluation settings
 (SCALES[scale]["controls"]). It waits for its CLAW run: the launcher starts it once that run is "done" (rerun
@@ -36,7 +36,7 @@ Scales:
   cpu    fits in about two hours on a 2-core CPU with --workers 2: Reach only for Exp 1/2 and
          Cheetah/Walker for Exp 3-5, sizes G-I, 5,000 pretraining steps, a 128-sample
          planner, short evaluations, 3 seeds. Same hyperparameters for every method.
-  learn  budgets where single-task TD-MPC2 learns (issue 14), size F, 3 seeds, compiled: `budget` (ST on each
+  learn  budgets where single-task TD-MPC2 learns, size F, 3 seeds, compiled: `budget` (ST on each
          Cheetah/Walker embodiment, 2 seeds, 40,000 agent steps, training curves only) chose the per-embodiment
          budget of Exp 3-5: 20,000 agent steps (single-task returns 15-30x the random policy's there; RESULTS.md),
          so Exp 4 (CLAW ranks 1, 4, 8, 16, FiLM, Concat) and Exp 5 (post-hoc vs CLAW rank 8) pretrain 40,000 steps

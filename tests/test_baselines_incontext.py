@@ -232,7 +232,7 @@ def test_posthoc_bad_arguments(tmp_path):
     with pytest.raises(SystemExit, match="--rank must be a positive integer"):
         posthoc.main(tiny_args(posthoc, tmp_path, rank=0))
     defaults = posthoc.Args()
-    assert (defaults.family, defaults.model_size, defaults.rank) == ("cheetah_walker", "F", 8)
+    assert (defaults.family, defaults.model_size, defaults.rank) == ("cheetah_walker", None, 8)  # None: A on CUDA, F on a CPU
     assert posthoc.DEFAULT_TOTAL_TIMESTEPS["cheetah_walker"] == 500_000
 
 

@@ -130,7 +130,7 @@ def test_run_job_resumes_a_dead_run_holding_its_lock(tmp_path, monkeypatch):
     delayed = sweep.RunJob().checkpoint(run, str(run_dir), {}, False, 120.0)
     assert isinstance(delayed.function, sweep.RunJob) and delayed.args == (run, str(run_dir), {}, False, 120.0)
     assert sweep.read_status(str(run_dir))["status"] == "requeued"
-    # a script killed by SIGTERM (a session's end) was interrupted, not failed: the next launcher resumes it
+    # a script killed by SIGTERM (the machine shutting down) was interrupted, not failed: the next launcher resumes it
     monkeypatch.setattr(
         sweep.Run,
         "command",
@@ -407,7 +407,7 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     # not a training run
     assert str(tmp_path / control.name) in dict(aggregate.summarize(aggregate.load_runs(str(tmp_path)))[2])
     # each finished run was archived as it ended: the archive alone aggregates to the same tables, and a launcher
-    # whose sweep directory is gone (a lost machine) reruns nothing it holds
+    # whose sweep directory is gone (another machine) reruns nothing it holds
     assert sorted(os.listdir(archive)) == sorted(r.name for r in runs + [control])
     assert sorted(os.listdir(os.path.join(archive, control.name))) == [
         "controls.json",
@@ -640,9 +640,9 @@ def test_learn_recipes_and_budget_training_curves(monkeypatch):
     ]
     assert len(exp45) == 7 * 3 and all(r.size == "F" and "40000" in r.extra for r in exp45)
     # seed-major across experiments: every experiment's first seed before any second seed
-    issue14 = sweep.plan_runs(["exp4", "exp5", "exp1", "exp2", "controls"], "learn")
-    seed1 = [r for r in issue14 if r.seed == 1 and r.needs is None]
-    assert [r.seed for r in issue14 if r.needs is None] == sorted(r.seed for r in issue14 if r.needs is None)
+    learn_runs = sweep.plan_runs(["exp4", "exp5", "exp1", "exp2", "controls"], "learn")
+    seed1 = [r for r in learn_runs if r.seed == 1 and r.needs is None]
+    assert [r.seed for r in learn_runs if r.needs is None] == sorted(r.seed for r in learn_runs if r.needs is None)
     assert {m for r in seed1 for m in r.experiments} == {"exp1", "exp2", "exp4", "exp5"}
     without_budget = {k: v for k, v in sweep.SCALES["learn"].items() if k != "exp345"}
     monkeypatch.setitem(sweep.SCALES, "learn", without_budget)

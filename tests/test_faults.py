@@ -211,3 +211,36 @@ def test_sigint_saves_at_the_next_episode_end_and_resume_ends_like_an_uninterrup
     whole = torch.load(tmp_path / "whole" / "checkpoint.pt", weights_only=False)["model"]
     resumed = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=False)["model"]
     assert all(torch.equal(whole[k], resumed[k]) for k in whole)
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=lambda s: s.__name__)
+def test_the_model_size_defaults_to_the_papers_on_cuda_and_f_on_a_cpu(script, monkeypatch):
+    monkeypatch.setattr(script.torch.cuda, "is_available", lambda: True)
+    assert script.default_model_size(script.Args()) == "A"
+    assert script.default_model_size(script.Args(cuda=False)) == "F"
+    monkeypatch.setattr(script.torch.cuda, "is_available", lambda: False)
+    assert script.Args().model_size is None and script.default_model_size(script.Args()) == "F"
+
+
+def test_a_run_says_its_size_its_evaluation_and_then_an_estimate_of_its_duration():
+    """Without --model-size a CPU run says size F in its first line; the evaluation line names the flags that shorten
+    it; after 30 training steps an estimate of training and evaluation time follows, once."""
+    command = [sys.executable, os.path.join(REPO, "claw_tdmpc2.py"), *TINY, "--total-timesteps", "700", "--dry-run"]
+    command.remove("--model-size"), command.remove("I"), command.remove("--rank"), command.remove("2")
+    env = {**os.environ, "MUJOCO_GL": "disable", "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}
+    out = subprocess.run(command, env=env, check=True, capture_output=True, text=True).stdout
+    assert out.splitlines()[0] == "model size F: the default on a CPU (--model-size A is the paper's size)"
+    clock = claw.RunClock(claw.Args(online_eval_steps=1000, eval_episodes=2), 10_000, 6, 100)
+    printed = []
+    clock.estimate = lambda step: printed.append(step) or "estimate"
+    for _ in range(3):
+        clock.lap("update")
+    for step in range(1, 40):
+        clock.lap("step", step)
+    assert printed == [31] and len(clock.seconds["update"]) == 2 and len(clock.seconds["step"]) == 38
+    clock.seconds = {"update": [0.0625], "step": [0.125]}
+    text = claw.RunClock.estimate(clock, 1000)
+    # training 9,000 x 125 ms; per environment Exp 1 1,000 x 125 ms, Exp 2 2 episodes x 100 x (125 - 62.5) ms; 6 environments
+    assert text.startswith("estimate on this machine: training 0:18:45 more (125 ms per agent step), evaluation 0:13:45 (6")
+    assert "Exp 1 0:02:05 and Exp 2 0:00:12 each; shorter: --online-eval-steps, --eval-episodes" in text
+    assert "shorter: --online-eval-steps, --eval-episodes" in claw.describe_evaluation(claw.Args())
