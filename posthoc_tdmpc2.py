@@ -71,7 +71,7 @@ class Args:
     compile: Literal["auto", "on", "off"] = "auto"
     """torch.compile the update and the planner (inductor; CUDA graphs for the planner on a GPU): same losses and updates
     as eager within float tolerance, faster steps after a one-off compile of ~2 min; auto: on for budgets of at least
-    10,000 agent steps (on a 2-core CPU at size F it pays for itself after ~8,000; README "Speed")"""
+    10,000 agent steps (on a 2-core CPU at size F it pays for itself after ~8,000; docs/speed.md)"""
     total_timesteps: Optional[int] = None
     """pretraining agent steps (planner calls), split in halves between the passes; default 500k"""
     model_size: Optional[Literal["A", "B", "D", "E", "F", "G", "H", "I"]] = None
@@ -771,7 +771,7 @@ def main(args: Args, typed: set | None = None):
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-    if args.compile == "auto":  # measured break-even: README "Speed"
+    if args.compile == "auto":  # measured break-even: docs/speed.md
         args.compile = "on" if total_timesteps >= 10_000 else "off"
     # rebinds the module's hot functions: every call below, evaluation included, takes the compiled ones
     if args.compile == "on":

@@ -10,7 +10,9 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 CHECKED = ["*.py", "*.md", "*.sh", "*.toml", "*.txt", "*.bib", "LICENSE", ".ci/run"]
 SKIPPED = {".venv", "venv", "runs", ".git", "wandb"}
 GENERATED = "results"  # tables written by experiments/aggregate.py from run metadata
-ORDINALS = r"(first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|\w+teenth|twent\w*|thirt\w*|fort\w*|\d+(st|nd|rd|th))"
+ORDINALS = (
+    r"(first|second|third|fourth|fifth|sixth|seventh|eighth|ninth|tenth|\w+teenth|twent\w*|thirt\w*|fort\w*|\d+(st|nd|rd|th))"
+)
 PATTERNS = [
     re.compile(r"\bsessions?\b(?!['\"]?\))", re.I),  # a working period (pytest's scope="session" is allowed below)
     re.compile(rf"\b{ORDINALS}[- ](session|period|stop)\b", re.I),

@@ -166,8 +166,7 @@ def test_concat_encoder_input_is_obs_plus_context(tmp_path, capsys):
     out = capsys.readouterr().out
     assert f"base parameters: {60667 + 64 * 64}\n" in out  # only the encoder's first layer widens
     assert (
-        "adapter parameters: 0 (world model) + 0 (policy)\ncontext encoder parameters: " in out
-        and "(context dimension 64)\n" in out
+        "adapter parameters: 0 (world model) + 0 (policy)\ncontext encoder parameters: " in out and "(dimension 64)\n" in out
     )
 
 

@@ -175,6 +175,9 @@ def test_aggregate_reports_duplicated_steps(tmp_path, capsys):
         writer.add_scalar("eval/online/episodic_return", value, 100)
         writer.add_scalar("eval/offline/episodic_return", value, 0)
         writer.close()
+        # TensorBoard orders event files by name, whose last field is a per-process counter (9 sorts after 10): a new
+        # second in the name's time field keeps the two files in the order they were written
+        time.sleep(1.1)
     (run_dir / "run.json").write_text(
         json.dumps({"method": "claw", "family": "reach", "size": "I", "rank": 2, "seed": 1, "status": "done"})
     )
