@@ -81,7 +81,6 @@ class Args:
     # CLAW hypernetwork (paper Table "arch"; the context pool and standardisation are our choice)
 
     hypernet_lr: float = 3e-4
-    """Adam lr of the context encoder"""
     context_dim: int = 64
     embed_hidden: int = 256
     context_pool_episodes: int = 20
@@ -352,8 +351,7 @@ class WorldModel(nn.Module):
 # Concat: the context embedding u_con joins the observation at the world model's encoder input
 # ---------------------------------------------------------------------------------------------
 def conditioned_weights(model: WorldModel, u_con) -> dict:
-    """The base weights plus u_con [context_dim], which `WorldModel.encode` appends to every
-    observation; dynamics, reward, Q and policy see the context only through the latent."""
+    """The base weights plus u_con [context_dim]; only `WorldModel.encode` reads it, appending it to every observation."""
     weights = model.base_weights()
     weights["context"] = u_con
     return weights
@@ -811,7 +809,7 @@ def main(args: Args, typed: set | None = None):
         batch = replay.sample(k, args.batch_size)
         info = update(model, hypernet, optimizers, scale, *batch, pool.sample(k), discount, args)
         stop_if_diverged(info, global_step, checkpoint_path)
-        # plan and act in the rollout environment conditioned on its freshly encoded context
+        # plan and act in the rollout environment, weights freshly computed from its context
         with torch.no_grad():
             weights = conditioned_weights(model, hypernet(rollout_context))
         action, prev_mean = plan(

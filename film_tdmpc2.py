@@ -742,7 +742,8 @@ def main(args: Args, typed: set | None = None):
         saved = read_checkpoint(args.resume or args.checkpoint)
         # flags that shape the saved weights: the shared ones, then the method's own
         architecture = ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic")
-        architecture += ("context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim", "decoder_coef")
+        architecture += ("context_dim", "embed_hidden", "decoder_coef")
+        architecture += ("generator_hidden", "chunk_size", "chunk_embed_dim")
         # --eval-only: the run's own evaluation unless given anew
         free = RESUME_FREE + (() if args.resume else EVALUATION_FLAGS)
         adopt_args(
@@ -880,7 +881,7 @@ def main(args: Args, typed: set | None = None):
         batch = replay.sample(k, args.batch_size)
         info = update(model, hypernet, optimizers, scale, layout, n_wm, *batch, pool.sample(k), discount, args)
         stop_if_diverged(info, global_step, checkpoint_path)
-        # plan and act in the rollout environment with its freshly generated adapters
+        # plan and act in the rollout environment, weights freshly computed from its context
         with torch.no_grad():
             weights = adapted_weights(model, hypernet(rollout_context), layout)
         action, prev_mean = plan(

@@ -651,7 +651,7 @@ def policy_loss(model: WorldModel, weights, zs, scale: RunningScale, args: Args)
 
 def update(model, hypernet, optimizers, scale, layout, n_wm, obs, action, reward, context, discount, args: Args) -> dict:
     wm_optimizer, pi_optimizer, hyper_optimizer = optimizers
-    base_pass = context is None  # pass 1: plain TD-MPC2 on the base; pass 2: CLAW's update, hypernet optimiser only
+    base_pass = context is None  # pass 1: plain TD-MPC2; pass 2: CLAW's update, no gradient (no step) for the frozen base
     model.train()
     # phase 1: world-model base slice (pass 1) or hypernet (pass 2) on the world-model loss + adapter penalty (+ reward decoder)
     u_con = None if base_pass else hypernet.encoder(context)
@@ -663,26 +663,28 @@ def update(model, hypernet, optimizers, scale, layout, n_wm, obs, action, reward
     decoder_loss = hypernet.encoder.decoder_loss(u_con, obs, action, reward) if decoding else 0.0
     if decoding:
         info["decoder_loss"] = decoder_loss.detach()
-    optimizer = wm_optimizer if base_pass else hyper_optimizer
-    optimizer.zero_grad(set_to_none=True)
+    wm_optimizer.zero_grad(set_to_none=True)
+    hyper_optimizer.zero_grad(set_to_none=True)
     (wm_loss + adapter_penalty + args.decoder_coef * decoder_loss).backward()
-    params = [p for g in optimizer.param_groups for p in g["params"]]
-    grad_norm = nn.utils.clip_grad_norm_(params, args.grad_clip_norm)
-    optimizer.step()
+    wm_params = [p for g in wm_optimizer.param_groups for p in g["params"]]
+    grad_norm = nn.utils.clip_grad_norm_(wm_params + list(hypernet.parameters()), args.grad_clip_norm)
+    wm_optimizer.step()
+    hyper_optimizer.step()
     # phase 2: policy slice (pass 1) or hypernet (pass 2, policy adapter regenerated) on the policy loss
     if not base_pass:
         phi_pi = hypernet(context)[n_wm:]
         weights = adapted_weights(model, torch.cat([phi[:n_wm].detach(), phi_pi]), layout)
         adapter_penalty = args.adapter_l2 * phi_pi.pow(2).sum()
     pi_loss = policy_loss(model, weights, zs.detach(), scale, args) + adapter_penalty
-    optimizer = pi_optimizer if base_pass else hyper_optimizer
-    optimizer.zero_grad(set_to_none=True)
+    pi_optimizer.zero_grad(set_to_none=True)
+    hyper_optimizer.zero_grad(set_to_none=True)
     pi_loss.backward()
-    nn.utils.clip_grad_norm_([p for g in optimizer.param_groups for p in g["params"]], args.grad_clip_norm)
-    optimizer.step()
+    nn.utils.clip_grad_norm_(list(model.policy.parameters()) + list(hypernet.parameters()), args.grad_clip_norm)
+    pi_optimizer.step()
+    hyper_optimizer.step()
     # target critic: EMA of the base weights in pass 1, frozen with the base in pass 2
-    if base_pass:
-        with torch.no_grad():
+    with torch.no_grad():
+        if base_pass:
             torch._foreach_lerp_(list(model.target_qs.parameters()), list(model.qs.parameters()), args.tau)
     model.eval()
     adapter_norm = torch.tensor(float("nan")) if base_pass else phi.detach().norm()  # pass 1: no adapter
@@ -721,9 +723,8 @@ def evaluate(model, hypernet, layout, discount, writer, device, args: Args, prog
         )
         return action.cpu().numpy()
 
-    # paper Exp 5 evaluates on cheetah only
     return evaluate_family(
-        [CHEETAH],
+        [CHEETAH],  # paper Exp 5 evaluates on cheetah only
         adapt,
         act,
         writer,
@@ -745,8 +746,8 @@ def main(args: Args, typed: set | None = None):
         saved = read_checkpoint(args.resume or args.checkpoint)
         # flags that shape the saved weights: the shared ones, then the method's own
         architecture = ("family", "model_size", "num_bins", "vmin", "vmax", "horizon", "discount", "discount_heuristic")
-        architecture += ("context_dim", "embed_hidden", "generator_hidden", "chunk_size", "chunk_embed_dim", "decoder_coef")
-        architecture += ("rank",)
+        architecture += ("context_dim", "embed_hidden", "decoder_coef")
+        architecture += ("generator_hidden", "chunk_size", "chunk_embed_dim", "rank")
         # --eval-only: the run's own evaluation unless given anew
         free = RESUME_FREE + (() if args.resume else EVALUATION_FLAGS)
         adopt_args(
