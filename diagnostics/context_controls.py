@@ -54,6 +54,7 @@ import claw_tdmpc2 as claw  # noqa: E402
 from common.context import collect_episodes  # noqa: E402
 from common.envs import episode_length, make_env, num_envs  # noqa: E402
 from common.evaluation import mean_ci  # noqa: E402
+from diagnostics.checks import check_at_least, read_checkpoint  # noqa: E402
 
 
 class NullWriter:
@@ -93,7 +94,7 @@ class SwappedContext(torch.nn.Module):
 def load(path: str):
     """(args, model, hypernet, layout, discount, rng): the checkpoint's saved arguments, its networks, and the torch
     random state that `claw_tdmpc2.py --eval-only` has when it calls evaluate()."""
-    saved = claw.read_checkpoint(path)  # one line for a missing, corrupt or other script's checkpoint
+    saved = read_checkpoint(path, "context_controls.py", ("claw_tdmpc2.py",))  # weights suffice: evaluation only
     args = claw.Args(**{k: v for k, v in saved["args"].items() if k in claw.Args.__dataclass_fields__})
     args = dataclasses.replace(args, capture_video=False, compile="off", cuda=False)
     random.seed(args.seed)
@@ -164,8 +165,6 @@ def controls(
             f"error: --swap-offset {swap_offset} is a multiple of the {n} environments of {args.family}: "
             "every environment would get its own context"
         )
-    if min(context_episodes) < 1 or eval_episodes < 1 or online_eval_steps < 0:
-        raise SystemExit("error: --context-episodes and --eval-episodes must be >= 1, --online-eval-steps >= 0")
     # what the saved arms' numbers depend on besides their keys; a compiled planner draws other random streams
     identity = (
         claw.weights_digest(model),
@@ -290,6 +289,7 @@ def main(argv=None):
     parser.add_argument("--json", help="also write the result as JSON to this file (atomically)")
     parser.add_argument("--progress", help="prefix of the files that let an interrupted run go on (default: the --json path)")
     cli = parser.parse_args(argv)
+    check_at_least(cli, {"context_episodes": 1, "eval_episodes": 1, "online_eval_steps": 0, "threads": 1})
     torch.set_num_threads(cli.threads)
     if cli.compile == "on":  # evaluate() looks plan up in claw's globals, as claw.main's own --compile rebinding relies on
         claw.plan = claw.compiled(claw.plan, torch.device("cpu"))

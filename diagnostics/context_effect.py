@@ -36,6 +36,7 @@ import torch  # noqa: E402
 
 from common.context import collect_episodes  # noqa: E402
 from common.envs import make_env, num_envs  # noqa: E402
+from diagnostics.checks import check_at_least, read_checkpoint  # noqa: E402
 
 METHODS = ("claw_tdmpc2.py", "film_tdmpc2.py", "concat_tdmpc2.py", "posthoc_tdmpc2.py")
 OUTPUTS = ("latent", "next latent", "reward", "Q", "policy action")
@@ -135,14 +136,9 @@ def main(argv=None):
     parser.add_argument("--batch", type=int, default=256, help="replay transitions per environment")
     parser.add_argument("--out", help="also write the report (markdown) here")
     cli = parser.parse_args(argv)
-    if cli.draws < 2 or cli.episodes < 1 or cli.batch < 1:
-        parser.error("need --draws >= 2, --episodes >= 1 and --batch >= 1")
-    try:
-        state = torch.load(cli.checkpoint, map_location="cpu", weights_only=False)
-    except Exception as error:  # missing, truncated or not a torch file: torch raises many types
-        raise SystemExit(f"error: cannot read checkpoint {cli.checkpoint}: {type(error).__name__}: {error}") from None
-    if not isinstance(state, dict) or state.get("method") not in METHODS:
-        raise SystemExit(f"error: {cli.checkpoint} is not a checkpoint of {', '.join(METHODS)}")
+    check_at_least(cli, {"draws": 2, "episodes": 1, "batch": 1})
+    # the batches are the run's own replay transitions, which archived checkpoints drop
+    state = read_checkpoint(cli.checkpoint, "context_effect.py", METHODS, needs=("replay",))
     method = importlib.import_module(state["method"].removesuffix(".py"))
     family, n = state["args"]["family"], num_envs(state["args"]["family"])
     with float64():

@@ -36,6 +36,7 @@ import torch  # noqa: E402
 import claw_tdmpc2 as claw  # noqa: E402
 from common.context import collect_episodes  # noqa: E402
 from common.envs import env_param, make_env, num_envs  # noqa: E402
+from diagnostics.checks import check_at_least  # noqa: E402
 from diagnostics.inspect_adapters import between_within  # noqa: E402
 
 TRACKED_SLICE = {"reach": slice(0, 3), "push": slice(4, 7)}  # hand xyz; object xyz
@@ -89,7 +90,7 @@ def train_encoder_probe(
     return int((predicted == np.asarray(test_labels)).sum()), between_within(index)[2]
 
 
-def main():
+def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--family", choices=sorted(TRACKED_SLICE), default="reach")
     parser.add_argument("--draws", type=int, default=6, help="contexts per goal")
@@ -104,7 +105,14 @@ def main():
         default=20,
         help="steps between replacing each goal's oldest pool episode by a fresh one; 0: a fixed pool",
     )
-    opts = parser.parse_args()
+    opts = parser.parse_args(argv)
+    # two draws per goal: leave-one-out needs another context of the goal; the probe draws whole episodes from its pool
+    check_at_least(opts, {"draws": 2, "context_episodes": 1, "probe_steps": 0, "probe_refresh": 0})
+    if opts.probe_pool < opts.context_episodes:
+        raise SystemExit(
+            f"error: --probe-pool must be >= --context-episodes ({opts.context_episodes}): a probe context draws that "
+            f"many episodes from the pool, got {opts.probe_pool}"
+        )
 
     n = num_envs(opts.family)
     goals = np.array([env_param(opts.family, g) for g in range(n)])

@@ -46,7 +46,7 @@ def normalised_forward(self, transitions, plain_forward=claw.ContextEncoder.forw
 
 def goal_revealing_collect(env, *args, **kwargs) -> dict:
     if not hasattr(env.unwrapped, "goal"):
-        raise SystemExit("the goal probe needs a Meta-World family (reach, push): other families have no hidden goal")
+        raise SystemExit("error: the goal probe needs a Meta-World family (reach, push): other families have no hidden goal")
     context = collect_episodes(env, *args, **kwargs)
     goal = env.unwrapped.goal  # after a reset: Meta-World sets its target there
     for key in ("obs", "next_obs"):
@@ -68,8 +68,8 @@ def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) < 2 or argv[0] not in ("unorm", "goal") or argv[1] not in ("train", "inspect", "controls"):
         raise SystemExit(
-            "usage: context_probes.py {unorm,goal} {train <claw_tdmpc2.py flags> | inspect <checkpoint> [flags]"
-            " | controls <checkpoint> [flags]}"
+            f"error: context_probes.py takes a probe (unorm, goal) and a tool (train, inspect, controls), got "
+            f"{' '.join(argv[:2]) or 'nothing'}; e.g. context_probes.py goal inspect <checkpoint> [inspect_adapters.py flags]"
         )
     probe, tool, rest = argv[0], argv[1], argv[2:]
     with contextlib.ExitStack() as stack:

@@ -28,6 +28,7 @@ import torch  # noqa: E402
 import claw_tdmpc2 as claw  # noqa: E402
 from common.context import collect_episodes  # noqa: E402
 from common.envs import make_env, num_envs  # noqa: E402
+from diagnostics.checks import check_at_least  # noqa: E402
 
 
 def standardise(train: np.ndarray, test: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -91,8 +92,7 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
     cli = parser.parse_args(argv)
-    if cli.episodes < 1 or cli.steps < 1:
-        raise SystemExit("error: --episodes and --steps must be >= 1")
+    check_at_least(cli, {"episodes": 1, "steps": 1, "seed": 0, "threads": 1})
     torch.set_num_threads(cli.threads)
     transitions = [
         collect_episodes(make_env(cli.family, j, seed=cli.seed + j), cli.episodes, seed=cli.seed + 1000 + j)

@@ -32,6 +32,7 @@ import torch  # noqa: E402
 import claw_tdmpc2 as claw  # noqa: E402
 from common.context import collect_episodes  # noqa: E402
 from common.envs import episode_length, make_env, num_envs  # noqa: E402
+from diagnostics.checks import check_at_least, read_checkpoint  # noqa: E402
 
 
 def between_within(values: dict) -> tuple[float, float, float]:
@@ -91,17 +92,22 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint")
     parser.add_argument("--episodes", type=int, default=3, help="pi_con episodes per fresh context")
-    parser.add_argument("--draws", type=int, default=4, help="contexts per environment and source")
+    parser.add_argument("--draws", type=int, default=4, help="contexts per environment and source (>= 2)")
     cli = parser.parse_args(argv)
-    state = torch.load(cli.checkpoint, map_location="cpu", weights_only=False)
+    check_at_least(cli, {"episodes": 1, "draws": 2})  # two draws: the same-environment distance needs a pair
+    # the training pool's draws and the gradient probe read the pool and replay that archived checkpoints drop
+    state = read_checkpoint(cli.checkpoint, "inspect_adapters.py", ("claw_tdmpc2.py",), needs=("replay", "contexts"))
     args = claw.Args(**{k: v for k, v in state["args"].items() if k in claw.Args.__dataclass_fields__})
     env = make_env(args.family, 0)
     obs_dim, act_dim = env.observation_space.shape[0], env.action_space.shape[0]
     model = claw.WorldModel(obs_dim, act_dim, args.model_size, args)
     layout, n_wm, n_pi = claw.lora_layout(model, args.rank)
     hypernet = claw.Hypernet(2 * obs_dim + act_dim + 1, claw.lora_template(layout, n_wm + n_pi), args)
-    hypernet.load_state_dict(state["hypernet"])
-    model.load_state_dict(state["model"])
+    try:  # one line, not a size-mismatch traceback per tensor
+        hypernet.load_state_dict(state["hypernet"])
+        model.load_state_dict(state["model"])
+    except (KeyError, RuntimeError) as error:
+        raise SystemExit(f"error: {cli.checkpoint} does not fit its own saved arguments: {claw.mismatch(error)}") from None
     n = num_envs(args.family)
     fresh = {}
     for env_id in range(n):

@@ -36,6 +36,7 @@ import torch  # noqa: E402
 import oracle_tdmpc2 as oracle  # noqa: E402
 from common.envs import env_param, episode_length, make_env, num_envs  # noqa: E402
 from common.evaluation import mean_ci, offline_adaptation  # noqa: E402
+from diagnostics.checks import check_at_least, read_checkpoint  # noqa: E402
 
 
 def told_env(family: str, env_id: int, told_id: int, seed: int) -> gymnasium.Env:
@@ -53,7 +54,7 @@ def shown(family: str, env_id: int) -> str:
 
 def load(path: str):
     """(args, model, discount): the checkpoint's saved arguments and its base weights, in evaluation mode."""
-    saved = oracle.read_checkpoint(path)  # one line for a missing, corrupt or other script's checkpoint
+    saved = read_checkpoint(path, "oracle_controls.py", ("oracle_tdmpc2.py",))  # weights suffice: evaluation only
     args = oracle.Args(**{k: v for k, v in saved["args"].items() if k in oracle.Args.__dataclass_fields__})
     args = dataclasses.replace(args, capture_video=False, cuda=False)
     if saved.get("dims"):
@@ -177,8 +178,7 @@ def main(argv=None):
     parser.add_argument("--out", help="also write the markdown table to this file")
     parser.add_argument("--json", help="also write the result here, environment by environment; a rerun takes it up")
     cli = parser.parse_args(argv)
-    if cli.eval_episodes < 1:
-        parser.error("--eval-episodes must be at least 1")
+    check_at_least(cli, {"eval_episodes": 1, "threads": 1, "env_ids": 0})
     torch.set_num_threads(cli.threads)
     plan = oracle.compiled(oracle.plan, torch.device("cpu")) if cli.compile == "on" else oracle.plan
     result = controls(

@@ -13,9 +13,9 @@ Curves (Exp 1): family-averaged return and success per test-time step, averaged 
 Training curves (the budget recipe's ST runs, one embodiment per run, and every Exp 1/2 run): the mean
 training-episode return (and success) per window of agent steps, per seed, then mean and 95% CI across
 seeds, beside the random policy's return (training_curves.csv / training_curves.md).
-Runs that failed, are still running (their run.lock is held), died, or lack evaluation events are listed,
-never dropped silently; so are runs whose events repeat a step (a resume logged without purge_step), of
-which the last value counts.
+Runs that failed, are still running (their run.lock is held), died, lack evaluation events, or whose run.json or
+scalars.json is damaged (truncated, invalid: a warning line names the file) are listed, never dropped silently; so
+are runs whose events repeat a step (a resume logged without purge_step), of which the last value counts.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ import argparse
 import csv
 import functools
 import glob
-import json
 import math
 import os
 import sys
@@ -35,7 +34,7 @@ import scipy.stats
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from common.evaluation import mean_ci  # noqa: E402
-from experiments.archive import archive_sweep, read_scalars  # noqa: E402
+from experiments.archive import RUN_KEYS, DamagedRun, archive_sweep, read_json, read_scalars  # noqa: E402
 from experiments.sweep import CONTROLS, SIZE_RANKS, run_is_live  # noqa: E402
 
 GROUP_KEYS = ("method", "family", "size", "rank")
@@ -51,21 +50,55 @@ def eval_tag(phase: str, key: str) -> str:
     return f"eval/{phase}/{'episodic_return' if key == 'return' else key}"
 
 
-def load_runs(roots: str | list[str]) -> list[dict]:
+def check_roots(tool: str, roots: list[str]) -> None:
+    """One error line for a root that is not an existing directory, before anything is read or written."""
+    for root in roots:
+        if not os.path.isdir(root):
+            what = "is not a directory" if os.path.exists(root) else "does not exist"
+            raise SystemExit(f"error: {root} {what}; {tool} reads sweep directories or archives (e.g. runs/sweeps/cpu)")
+
+
+def load_sweep(tool: str, roots: list[str]) -> tuple[list[dict], list[tuple[str, str]]]:
+    """load_runs(roots), [(run dir, why) of the damaged runs]; one error line where no run is readable."""
+    damaged = []
+    runs = load_runs(roots, damaged)
+    if not runs:
+        readable = f"no readable run.json ({len(damaged)} damaged)" if damaged else "no run.json"
+        raise SystemExit(f"error: {readable} under {' '.join(roots)}; {tool} needs runs of experiments/sweep.py")
+    return runs, damaged
+
+
+def load_runs(roots: str | list[str], damaged: list | None = None) -> list[dict]:
     """run.json of every run under the roots (sweep directories or archives, experiments/archive.py), with its scalars
-    as {tag: [(step, value), ...]}. A run found under several roots counts once: its finished copy, else the first."""
+    as {tag: [(step, value), ...]}. A run found under several roots counts once: its finished copy, else the first.
+    A run whose run.json or scalars.json cannot be read is left out with a warning line naming the file, and appended
+    to damaged as (run dir, why)."""
     found = {}
+
+    def skip(run_dir: str, error: DamagedRun):
+        print(f"warning: skipped a damaged run: {error}; the other runs go on", file=sys.stderr)
+        if damaged is not None:
+            damaged.append((run_dir, f"damaged: {error}"))
+
     for root in [roots] if isinstance(roots, str) else roots:
         for path in sorted(glob.glob(os.path.join(root, "*", "run.json"))):
-            with open(path) as f:
-                run = json.load(f)
+            try:
+                run = read_json(path, RUN_KEYS)
+            except DamagedRun as error:
+                skip(os.path.dirname(path), error)
+                continue
             run["dir"] = os.path.dirname(path)
             name = os.path.basename(run["dir"])
             if name not in found or (found[name].get("status") != "done" and run.get("status") == "done"):
                 found[name] = run
-    runs = [found[name] for name in sorted(found)]
-    for run in runs:
-        run["scalars"], run["duplicated"] = read_scalars(run["dir"])
+    runs = []
+    for name in sorted(found):
+        try:
+            found[name]["scalars"], found[name]["duplicated"] = read_scalars(found[name]["dir"])
+        except DamagedRun as error:
+            skip(found[name]["dir"], error)
+            continue
+        runs.append(found[name])
     return runs
 
 
@@ -259,8 +292,12 @@ def controls_rows(runs: list[dict]) -> list[dict]:
     for run in runs:
         path = os.path.join(run["dir"], "controls.json")
         if run.get("method") in CONTROLS and run.get("status") == "done" and os.path.isfile(path):
-            with open(path) as f:
-                groups[(CONTROLS[run["method"]], run["family"], run["size"], run["rank"])].append((run["seed"], json.load(f)))
+            try:
+                result = read_json(path, ("context_episodes", "swap", "size"))
+            except DamagedRun as error:
+                print(f"warning: skipped the controls of {os.path.basename(run['dir'])}: {error}", file=sys.stderr)
+                continue
+            groups[(CONTROLS[run["method"]], run["family"], run["size"], run["rank"])].append((run["seed"], result))
     rows = []
     for (method, family, size, rank), members in sorted(groups.items()):
         # (quantity, protocol, arm, context episodes) -> (per-seed means, per-(seed, env) values)
@@ -556,19 +593,19 @@ def main(argv=None):
     )
     cli = parser.parse_args(argv)
     cli.root = cli.roots[0]
+    check_roots("aggregate.py", cli.roots)
     if cli.archive:
         for root in [r for r in cli.roots if os.path.abspath(r) != os.path.abspath(cli.archive)]:
             print(f"archived {archive_sweep(root, cli.archive)} finished runs of {root} in {cli.archive}")
         cli.roots.append(cli.archive)
-    runs = load_runs(cli.roots)
-    if not runs:
-        raise SystemExit(f"error: no run.json under {' '.join(map(repr, cli.roots))}; run experiments/sweep.py first")
+    runs, damaged = load_sweep("aggregate.py", cli.roots)
     print(
         f"read {len(runs)} runs; the training curves roll out a random policy per family (minutes on Walker)",
         file=sys.stderr,
         flush=True,
     )
     rows, curves, problems = summarize(runs)
+    problems += damaged  # listed in summary.md beside the others, never dropped silently
     write_csv(os.path.join(cli.root, "summary.csv"), rows)
     write_csv(os.path.join(cli.root, "curves.csv"), curves)
     for name, table_rows, to_markdown in (
@@ -591,7 +628,9 @@ def main(argv=None):
     with open(os.path.join(cli.root, "summary.md"), "w") as f:
         f.write(table)
     print(table)
-    print(f"{len(runs)} runs, {len(problems)} not aggregated; wrote summary.csv, curves.csv, summary.md in {cli.root}")
+    print(
+        f"{len(runs) + len(damaged)} runs, {len(problems)} not aggregated; wrote summary.csv, curves.csv, summary.md in {cli.root}"
+    )
 
 
 if __name__ == "__main__":

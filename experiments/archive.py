@@ -34,16 +34,42 @@ KEPT = ("stdout.log", "context_effect.md", "inspect_adapters.txt", "controls.jso
 WEIGHTS = "checkpoint.pt"  # in the archive: the run's checkpoint less what only training resumes from
 TRAINING_ONLY = ("replay", "optimizers", "contexts")  # kept as None: weights only
 NOT_CARRIED = ("run.lock",)  # and the half-written files: *.tmp, *.partial
+RUN_KEYS = ("method", "family", "size", "rank", "seed", "status")  # what sweep.py writes in every run.json
+
+
+class DamagedRun(ValueError):
+    """A run file that cannot be read: its message is one line naming the file and what is wrong."""
+
+
+def read_json(path: str, required=()) -> dict:
+    """A JSON object from path, or DamagedRun: unreadable, truncated or invalid JSON, not an object, or lacking a
+    required key."""
+    try:
+        with open(path) as f:
+            record = json.load(f)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DamagedRun(f"{path}: not readable JSON (truncated or damaged: {error})") from None
+    if not isinstance(record, dict):
+        raise DamagedRun(f"{path}: a JSON {type(record).__name__}, expected an object")
+    missing = [key for key in required if key not in record]
+    if missing:
+        raise DamagedRun(f"{path}: lacks {', '.join(missing)}")
+    return record
 
 
 def read_scalars(run_dir: str) -> tuple[dict, list]:
     """({tag: [(step, value), ...]} sorted by step, [tags that repeat a step]) from an archived run's scalars.json,
-    else from the run's TensorBoard events (where a step repeats, the last value wins, as in TensorBoard)."""
+    else from the run's TensorBoard events (where a step repeats, the last value wins, as in TensorBoard).
+    DamagedRun for a scalars.json that is not what archive_run writes."""
     path = os.path.join(run_dir, SCALARS)
     if os.path.isfile(path):
-        with open(path) as f:
-            archived = json.load(f)
-        return {tag: [tuple(point) for point in points] for tag, points in archived["scalars"].items()}, archived["duplicated"]
+        archived = read_json(path, ("scalars", "duplicated"))
+        try:
+            return {
+                tag: [(int(step), float(value)) for step, value in points] for tag, points in archived["scalars"].items()
+            }, list(archived["duplicated"])
+        except (AttributeError, TypeError, ValueError) as error:
+            raise DamagedRun(f"{path}: scalars are not {{tag: [[step, value], ...]}} ({error})") from None
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     # a resumed run's writer starts with purge_step: TensorBoard drops the steps the killed process logged after
@@ -72,9 +98,9 @@ def archive_run(run_dir: str, archive: str) -> str:
         raise ValueError(f"{run_dir}: status {record.get('status')!r}; only finished runs are archived")
     target = os.path.join(archive, os.path.basename(os.path.normpath(run_dir)))
     staging = target + ".tmp"
+    scalars, duplicated = read_scalars(run_dir)  # first: a damaged run leaves no half-made copy behind
     shutil.rmtree(staging, ignore_errors=True)
     os.makedirs(staging)
-    scalars, duplicated = read_scalars(run_dir)
     with open(os.path.join(staging, SCALARS), "w") as f:
         json.dump({"scalars": scalars, "duplicated": duplicated}, f, separators=(",", ":"))
     for name in KEPT:
@@ -142,10 +168,14 @@ def archive_sweep(root: str, archive: str, carry: str | None = None) -> int:
         path = os.path.join(root, name, "run.json")
         if not os.path.isfile(path):
             continue
-        with open(path) as f:
-            status = json.load(f).get("status")
+        try:
+            status = read_json(path, RUN_KEYS)["status"]
+            if status == "done":
+                archive_run(os.path.join(root, name), archive)
+        except DamagedRun as damaged:
+            print(f"warning: not archived: {damaged}")
+            continue
         if status == "done":
-            archive_run(os.path.join(root, name), archive)
             if carry:
                 shutil.rmtree(os.path.join(carry, name), ignore_errors=True)
             archived += 1

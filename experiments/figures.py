@@ -28,7 +28,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import matplotlib.ticker  # noqa: E402
 
-from experiments.aggregate import controls_rows, load_runs, summarize, training_curves  # noqa: E402
+from experiments.aggregate import check_roots, controls_rows, load_sweep, summarize, training_curves  # noqa: E402
 from experiments.sweep import SIZE_RANKS  # noqa: E402
 
 COLORS = {
@@ -381,11 +381,14 @@ def main(argv=None):
     )
     parser.add_argument("--out", default=None, help="output directory (default: the first root)")
     cli = parser.parse_args(argv)
+    check_roots("figures.py", cli.roots)
     out = cli.out or cli.roots[0]
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise SystemExit(f"error: --out {out} is a file; figures.py writes its PNGs into a directory")
+    runs, _ = load_sweep("figures.py", cli.roots)
     os.makedirs(out, exist_ok=True)
-    runs = load_runs(cli.roots)
     rows, curves, problems = summarize(runs)
-    for dir_, why in problems:
+    for dir_, why in problems:  # the damaged ones were named as they were read
         print(f"not aggregated: {os.path.basename(dir_)}: {why}")
     for figure in (figure_exp1, figure_exp2, figure_exp3, figure_exp4, figure_exp5):
         skipped = figure(rows, curves, out)

@@ -133,11 +133,14 @@ def test_online_protocol_own_vs_swapped(checkpoint):
 
 
 def test_one_line_errors(checkpoint, tmp_path):
-    with pytest.raises(SystemExit, match="cannot read checkpoint"):
+    with pytest.raises(SystemExit, match="missing.pt does not exist"):
         context_controls.main([str(tmp_path / "missing.pt")])
     foreign = tmp_path / "dr.pt"
     torch.save({"args": {"family": "reach"}, "model": {}, "method": "dr_tdmpc2.py"}, foreign)
-    with pytest.raises(SystemExit, match="is a dr_tdmpc2.py checkpoint, expected one written by claw_tdmpc2.py"):
+    with pytest.raises(
+        SystemExit,
+        match=r"is a checkpoint of DR \(dr_tdmpc2.py\); context_controls.py needs a checkpoint of CLAW \(claw_tdmpc2.py\)",
+    ):
         context_controls.main([str(foreign)])
     with pytest.raises(SystemExit, match="--swap-offset 6 is a multiple of the 6 environments"):
         context_controls.main([checkpoint, "--swap-offset", "6"])

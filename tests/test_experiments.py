@@ -712,7 +712,9 @@ def test_context_probes_patch_claw_only_while_they_run(monkeypatch):
     assert (claw.ContextEncoder.forward, claw.collect_episodes) == (plain_forward, plain_collect)  # restored afterwards
     with pytest.raises(SystemExit, match="Meta-World family"):
         context_probes.goal_revealing_collect(make_env("walker", 0), 1, seed=0)
-    with pytest.raises(SystemExit, match="usage"):
+    with pytest.raises(
+        SystemExit, match=r"takes a probe \(unorm, goal\) and a tool \(train, inspect, controls\), got goal bogus"
+    ):
         context_probes.main(["goal", "bogus"])
 
 
