@@ -27,6 +27,7 @@ import json
 import logging
 import os
 import shutil
+import sys
 
 SCALARS = "scalars.json"
 # copied as they are, where the run wrote them
@@ -157,8 +158,12 @@ def is_archived(archive: str | None, name: str) -> bool:
     path = os.path.join(archive, name, "run.json")
     if not os.path.isfile(path):
         return False
-    with open(path) as f:
-        return json.load(f).get("status") == "done"
+    try:
+        return read_json(path).get("status") == "done"
+    except DamagedRun as error:  # an archive is committed: restoring it beats silently retraining the run
+        sys.exit(
+            f"error: archived run damaged: {error}; restore it (git checkout -- {path}) or delete {os.path.dirname(path)} to rerun it"
+        )
 
 
 def archive_sweep(root: str, archive: str, carry: str | None = None) -> int:

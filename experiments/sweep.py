@@ -69,7 +69,7 @@ import submitit
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)  # run as a script, experiments/ is not yet a package on the path
-from experiments.archive import WEIGHTS, archive_run, carry_run, is_archived, restore_run  # noqa: E402
+from experiments.archive import WEIGHTS, DamagedRun, archive_run, carry_run, is_archived, read_json, restore_run  # noqa: E402
 
 SCRIPTS = {m: f"{m}_tdmpc2.py" for m in ("claw", "dr", "st", "oracle", "film", "concat", "posthoc")}
 SCRIPTS["controls"] = os.path.join("diagnostics", "context_controls.py")  # evaluation only: Run.command
@@ -324,8 +324,11 @@ def read_status(run_dir: str) -> dict:
     path = os.path.join(run_dir, "run.json")
     if not os.path.isfile(path):
         return {}
-    with open(path) as f:
-        return json.load(f)
+    try:
+        return read_json(path)
+    except DamagedRun as error:  # treated as unfinished: the run resumes from its checkpoint, or starts anew
+        print(f"warning: {error}; treating the run as unfinished")
+        return {}
 
 
 def write_status(run_dir: str, run: Run, command: list[str], status: str, **extra):

@@ -221,3 +221,19 @@ def test_a_sweep_path_that_does_not_exist_is_refused_and_not_created(tmp_path):
         f"error: no readable run.json (1 damaged) under {damaged_only}"
     )
     assert os.listdir(damaged_only) == ["claw__reach__I__r2__s1"]  # no figure written
+
+
+def test_the_launcher_resumes_a_run_whose_run_json_is_damaged_and_stops_on_a_damaged_archive(tmp_path, capsys):
+    from experiments import sweep
+
+    run = sweep.plan_runs(["exp1"], "smoke")[0]
+    root, archive = tmp_path / "sweep", tmp_path / "archive"
+    os.makedirs(root / run.name)
+    (root / run.name / "run.json").write_text('{"method": "cl')
+    assert [pending.name for pending, _ in sweep.pending_runs([run], str(root))] == [run.name]
+    assert f"warning: {root / run.name / 'run.json'}: not readable JSON" in capsys.readouterr().out
+    os.makedirs(archive / run.name)
+    (archive / run.name / "run.json").write_text("[]")
+    with pytest.raises(SystemExit) as stopped:
+        sweep.pending_runs([run], str(root), archive=str(archive))
+    assert str(stopped.value.code).startswith(f"error: archived run damaged: {archive / run.name / 'run.json'}")
