@@ -2,10 +2,11 @@
 
     python experiments/look.py                 # runs/look/: 8 tiny runs, summary.md, claims.md, exp1.png, exp2.png
 
-A tiny Exp 1/2 sweep on Reach (CLAW, DR, ST, Oracle; 2 seeds; model size I, 1,000 agent steps; the "look" scale of
-experiments/sweep.py) through the local launcher with two workers, then experiments/aggregate.py (tables with 95%
-intervals and the claims at n = 2) and experiments/figures.py. Nothing here learns the task: the numbers show the
-format of a result, not a result (RESULTS.md has those). Rerunning it skips what is done; --root elsewhere starts anew.
+A tiny Exp 1/2 sweep on Reach (CLAW, DR, ST, Oracle; 2 seeds; model size I, 800 agent steps, a one-iteration planner;
+the "look" scale of experiments/sweep.py) through the local launcher with two workers, then experiments/aggregate.py
+(tables with 95% intervals and the claims at n = 2) and experiments/figures.py. Nothing here learns the task: the
+numbers show the format of a result, not a result (RESULTS.md has those). Rerunning it skips what is done; --root
+elsewhere starts anew.
 """
 
 from __future__ import annotations

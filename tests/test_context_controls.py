@@ -22,9 +22,22 @@ N_ENVS = 6  # reach
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
-    args = tiny_args(tmp_path_factory.mktemp("claw"), iterations=1, log_every=100, compile="off")
+    # the smallest planner (the tests evaluate it some hundred episodes): its cost is most of this file's
+    planner = dict(iterations=1, num_samples=16, num_elites=4, num_pi_trajs=2)
+    args = tiny_args(tmp_path_factory.mktemp("claw"), **planner, log_every=100, compile="off")
     claw.main(args)
     return os.path.join(args.run_dir, "checkpoint.pt")
+
+
+ARGV = ["--context-episodes", "1", "2", "--eval-episodes", "1", "--swap-offset", "2"]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(checkpoint, tmp_path_factory):
+    """One uninterrupted run of the tool (own, swapped and 2-episode arms), its tables written: (result, directory)."""
+    out = tmp_path_factory.mktemp("uninterrupted")
+    argv = [checkpoint, *ARGV, "--out", str(out / "a.md"), "--json", str(out / "a.json"), "--progress", str(out / "whole")]
+    return context_controls.main(argv), out
 
 
 def own_context(args, env_id, episodes):
@@ -100,17 +113,16 @@ def test_own_arm_is_claws_evaluation_and_swapped_arm_feeds_the_other_context(che
     assert own[0] == by_hand_env0(checkpoint, args)
 
 
-def test_two_runs_print_identical_tables(checkpoint, tmp_path, capsys):
-    argv = [checkpoint, "--context-episodes", "1", "--eval-episodes", "1", "--swap-offset", "2"]
-    first = context_controls.main([*argv, "--out", str(tmp_path / "a.md"), "--json", str(tmp_path / "a.json")])
-    second = context_controls.main([*argv, "--out", str(tmp_path / "b.md")])
+def test_two_runs_print_identical_tables(checkpoint, uninterrupted, tmp_path, capsys):
+    first, out = uninterrupted
+    second = context_controls.main([checkpoint, *ARGV, "--out", str(tmp_path / "b.md")])
     assert first == second
-    saved = json.loads((tmp_path / "a.json").read_text())  # the same numbers; JSON's keys are strings
+    saved = json.loads((out / "a.json").read_text())  # the same numbers; JSON's keys are strings
     assert saved["swap"]["own"]["offline"] == {str(j): v for j, v in first["swap"]["own"]["offline"].items()}
     assert saved["size"] == {str(k): {str(j): v for j, v in column.items()} for k, column in first["size"].items()}
-    assert saved["swap_offset"] == 2 and not (tmp_path / "a.json.tmp").exists()
-    text = (tmp_path / "a.md").read_text()
-    assert text == (tmp_path / "b.md").read_text() and capsys.readouterr().out.count(text) == 2
+    assert saved["swap_offset"] == 2 and not (out / "a.json.tmp").exists()
+    text = (out / "a.md").read_text()
+    assert text == (tmp_path / "b.md").read_text() and text in capsys.readouterr().out
     assert text.count("| mean ± 95% CI |") == 2 and "context of env (j+2) mod 6" in text and "Exp 1 online" not in text
 
 
@@ -146,9 +158,8 @@ def test_one_line_errors(checkpoint, tmp_path):
         context_controls.main([checkpoint, "--swap-offset", "6"])
 
 
-def test_an_interrupted_run_goes_on_from_its_finished_arms_and_environments(checkpoint, tmp_path, monkeypatch):
-    argv = [checkpoint, "--context-episodes", "1", "2", "--eval-episodes", "1", "--swap-offset", "2"]
-    uninterrupted = context_controls.main([*argv, "--progress", str(tmp_path / "whole")])
+def test_an_interrupted_run_goes_on_from_its_finished_arms_and_environments(checkpoint, uninterrupted, tmp_path, monkeypatch):
+    argv = [checkpoint, *ARGV]
     calls, offline = [], common_evaluation.offline_adaptation
 
     def killed_in_the_second_arm(*args, **kwargs):  # arm 1 runs environments 0-5, arm 2 is killed in environment 2
@@ -167,16 +178,15 @@ def test_an_interrupted_run_goes_on_from_its_finished_arms_and_environments(chec
     calls.clear()
     monkeypatch.setattr(common_evaluation, "offline_adaptation", lambda *a, **k: calls.append(1) or offline(*a, **k))
     resumed = context_controls.main([*argv, "--json", str(json_path)])
-    assert resumed == uninterrupted
+    assert resumed == uninterrupted[0]
     assert len(calls) == (N_ENVS - 2) + N_ENVS  # the rest of arm 2, then the 2-episode arm; arm 1 not rerun
     assert sorted(os.listdir(tmp_path)) == ["c.json"]  # progress files removed once the result is written
 
 
-def test_an_arm_interrupted_under_other_settings_is_not_taken_up(checkpoint, tmp_path, monkeypatch):
+def test_an_arm_interrupted_under_other_settings_is_not_taken_up(checkpoint, uninterrupted, tmp_path, monkeypatch):
     """Killed in the first arm (no finished arm saved yet), then rerun with another --eval-episodes: the rerun must not
     reuse the first run's finished environments, whose episodes were averaged over another count."""
-    argv = [checkpoint, "--context-episodes", "1", "--swap-offset", "2"]
-    expected = context_controls.main([*argv, "--eval-episodes", "2", "--progress", str(tmp_path / "whole")])
+    argv = [checkpoint, *ARGV]
     calls, offline = [], common_evaluation.offline_adaptation
 
     def killed_in_environment_3(*args, **kwargs):
@@ -187,11 +197,11 @@ def test_an_arm_interrupted_under_other_settings_is_not_taken_up(checkpoint, tmp
 
     monkeypatch.setattr(common_evaluation, "offline_adaptation", killed_in_environment_3)
     json_path = tmp_path / "c.json"
-    with pytest.raises(KeyboardInterrupt):
-        context_controls.main([*argv, "--eval-episodes", "1", "--json", str(json_path)])
+    with pytest.raises(KeyboardInterrupt):  # ARGV's --eval-episodes 1, here 2 (the last flag wins)
+        context_controls.main([*argv, "--eval-episodes", "2", "--json", str(json_path)])
     assert not os.path.exists(f"{json_path}.arms.pt") and any(name.startswith("c.json.arm-") for name in os.listdir(tmp_path))
     calls.clear()
     monkeypatch.setattr(common_evaluation, "offline_adaptation", lambda *a, **k: calls.append(1) or offline(*a, **k))
-    assert context_controls.main([*argv, "--eval-episodes", "2", "--json", str(json_path)]) == expected
-    assert len(calls) == 2 * N_ENVS  # own and swapped arms, every environment run again
+    assert context_controls.main([*argv, "--json", str(json_path)]) == uninterrupted[0]
+    assert len(calls) == 3 * N_ENVS  # own, swapped and 2-episode arms, every environment run again
     assert sorted(os.listdir(tmp_path)) == ["c.json"]

@@ -463,6 +463,8 @@ def test_carried_runs_outlive_their_machine_and_archived_weights_feed_the_contro
     archive, carry = str(tmp_path / "archive"), str(tmp_path / "carry")
     carried = []
     monkeypatch.setattr(sweep.RunJob, "CARRY_POLL_S", 0.1)
+    # the reports measured on a finished checkpoint: test_end_to_end_sweep_of_two_tiny_runs checks them
+    monkeypatch.setattr(sweep, "measure_checkpoint", lambda run_dir, method, env: None)
     monkeypatch.setattr(
         sweep, "carry_run", lambda run_dir, to: carried.append(run_dir) or archive_module.carry_run(run_dir, to)
     )

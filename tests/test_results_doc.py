@@ -4,17 +4,20 @@ claims.md (written by experiments/aggregate.py) has one line per claim, "- **<cl
 one line per comparison, "  - <what>: <difference> [<low>, <high>] (<n>): <verdict>". Every claim line and every
 comparison line must appear verbatim in RESULTS.md, each claim with its verdict also in the "At a glance" section,
 and the intervals and verdicts are checked one by one so that a failure names what differs. The figures and files
-RESULTS.md links to must exist, and RESULTS.md must stay under 25 KB."""
+RESULTS.md links to must exist, and RESULTS.md must stay under 25 KB. The tables in results/learn/runs are what
+experiments/aggregate.py writes from the archived runs there, byte for byte."""
 
 from __future__ import annotations
 
+import csv
 import os
 import re
 
 import pytest
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-CLAIMS = os.path.join(REPO, "results", "learn", "runs", "claims.md")
+ARCHIVE = os.path.join(REPO, "results", "learn", "runs")
+CLAIMS = os.path.join(ARCHIVE, "claims.md")
 RESULTS = os.path.join(REPO, "RESULTS.md")
 DETAILS = os.path.join(REPO, "docs", "results-details.md")
 
@@ -109,3 +112,24 @@ def test_linked_files_exist():
 
 def test_results_is_at_most_25_kb():
     assert os.path.getsize(RESULTS) <= 25 * 1024
+
+
+# what experiments/aggregate.py writes from an archive, all committed beside its runs
+TABLES = ("summary.md", "claims.md", "controls.md", "training_curves.md")
+CSVS = ("summary.csv", "curves.csv", "controls.csv", "training_curves.csv")
+
+
+def test_committed_tables_are_what_aggregate_writes_from_the_archived_runs(tmp_path, monkeypatch, capsys):
+    """Regenerates every table of results/learn/runs from its archived runs (their scalars.json: seconds) into an empty
+    directory and compares. The training curves' random-policy reference is a rollout per family (minutes on Walker):
+    here it is the committed training_curves.csv's, so every other number of that table is regenerated; .ci/run
+    regenerates the tables with the rollouts too."""
+    from experiments import aggregate
+
+    with open(os.path.join(ARCHIVE, "training_curves.csv"), newline="") as f:
+        committed_random = {(r["family"], r["train_env"]): float(r["random_policy"]) for r in csv.DictReader(f)}
+    monkeypatch.setattr(aggregate, "random_policy_return", lambda family, env_id: committed_random[(family, str(env_id))])
+    aggregate.main([str(tmp_path), ARCHIVE])  # an empty first root: the tables go there, the runs come from the archive
+    capsys.readouterr()
+    for name in TABLES + CSVS:
+        assert read(str(tmp_path / name)) == read(os.path.join(ARCHIVE, name)), f"{name} differs from a regenerated one"
