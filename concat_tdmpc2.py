@@ -71,6 +71,10 @@ class Args:
     """torch.compile the update and the planner (inductor; CUDA graphs for the planner on a GPU): same losses and updates
     as eager within float tolerance, faster steps after a one-off compile of ~2 min; auto: on for budgets of at least
     10,000 agent steps (on a 2-core CPU at size F it pays for itself after ~8,000; docs/speed.md)"""
+    cudagraphs: bool = False
+    """record the whole update (every phase, the optimiser steps included), the test-time gradient step and each kind of
+    planner call as one CUDA graph each and replay them (tensordict's CudaGraphModule; with --compile or without): same
+    results within float tolerance, less launch overhead; needs --cuda and a GPU"""
     total_timesteps: Optional[int] = None
     """pretraining agent steps (planner calls); default: the paper's per-family budget"""
     model_size: Optional[Literal["A", "B", "D", "E", "F", "G", "H", "I"]] = None
@@ -154,8 +158,9 @@ class Args:
     """checkpoint to evaluate with --eval-only"""
     eval_only: bool = False
     resume: Optional[str] = None
-    """checkpoint of a killed run to continue with its saved arguments (only --threads, --cuda, --run-dir, --log-every,
-    --checkpoint-every, --checkpoint-minutes, --track, --wandb-project-name, --wandb-entity, --capture-video may be given anew)"""
+    """checkpoint of a killed run to continue with its saved arguments (only --threads, --cuda, --compile, --cudagraphs,
+    --run-dir, --log-every, --checkpoint-every, --checkpoint-minutes, --track, --wandb-project-name, --wandb-entity,
+    --capture-video may be given anew)"""
     run_dir: Optional[str] = None
     """default runs/{family}__{exp_name}__{seed}__{unix time}"""
     overwrite: bool = False
@@ -227,9 +232,10 @@ class RunningScale:
 
     def __init__(self, tau: float, device):
         self.tau, self.value = tau, torch.ones((), device=device)
+        self.points = torch.tensor([0.05, 0.95], device=device)  # on the device: no host copy inside an update
 
     def update(self, q):
-        low, high = torch.quantile(q.detach().flatten().float(), torch.tensor([0.05, 0.95], device=q.device))
+        low, high = torch.quantile(q.detach().flatten().float(), self.points)
         self.value.lerp_(torch.clamp(high - low, min=1.0), self.tau)
 
 
@@ -699,10 +705,7 @@ def main(args: Args, typed: set | None = None):
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.compile == "auto":  # measured break-even: docs/speed.md
         args.compile = "on" if total_timesteps >= 10_000 else "off"
-    # rebinds the module's hot functions: every call below, evaluation included, takes the compiled ones
-    if args.compile == "on":
-        global update, plan
-        update, plan = compiled(update, device, cuda_graphs=False), compiled(plan, device)
+    accelerate(device, args)  # --compile, --cudagraphs: every call below, evaluation included, takes the fast functions
 
     n_envs, ep_len = num_envs(args.family), episode_length(args.family)
     envs = [make_env(args.family, env_id, seed=args.seed + env_id) for env_id in range(n_envs)]
@@ -759,6 +762,7 @@ def main(args: Args, typed: set | None = None):
         return
 
     optimizers = make_optimizers(model, hypernet, args)
+    capturable(optimizers, args.cudagraphs)  # --cudagraphs: Adam's step counts on the device
     replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     global_step, burst_left, saved_at, saved_step = 0, args.burst_updates, time.time(), 0
@@ -774,6 +778,7 @@ def main(args: Args, typed: set | None = None):
     pool = ContextPool(context_envs, args, device)
     if args.resume:
         state = load_checkpoint(args.resume, model, hypernet, optimizers, scale, replay, restore_rng=True)
+        capturable(optimizers, args.cudagraphs)  # the loaded state brings the setting of the run that wrote it
         pool.episodes, pool.collected = [[e.to(device) for e in p] for p in state["contexts"][0]], state["contexts"][1]
         global_step, burst_left, saved_step = state["global_step"], state.get("burst_left", 0), state["global_step"]
         for env, env_rng in zip(envs, state["rng"].get("envs", [])):  # checkpoints are written at episode ends
@@ -934,6 +939,7 @@ RESUME_FREE = (
     "threads",
     "cuda",
     "compile",
+    "cudagraphs",
     "log_every",
     "checkpoint_every",
     "checkpoint_minutes",
@@ -1001,6 +1007,9 @@ def check_ranges(args: Args):
             f"error: --horizon must be in 1..{episode_length(args.family) - 1} (below {args.family}'s episode "
             f"length), got {args.horizon}"
         )
+    if args.cudagraphs and not (args.cuda and torch.cuda.is_available()):
+        where = "CUDA is not available here" if args.cuda else "--no-cuda was given"
+        raise SystemExit(f"error: --cudagraphs needs --cuda and a GPU ({where}); leave it out or give --no-cudagraphs")
     size = args.model_size or default_model_size(args)
     encoder_hidden, _, mlp_hidden, _ = MODEL_SIZES[size]
     narrowest = min([*encoder_hidden, mlp_hidden])
@@ -1198,11 +1207,27 @@ def adopt_args(args: Args, saved: dict, keys, path: str, typed: set | None = Non
         setattr(args, key, saved[key])
 
 
+def accelerate(device: torch.device, args: Args):
+    """--compile and --cudagraphs: rebinds the module's hot functions, the update, the planner and (where the script has
+    one) the test-time gradient step, so that every later call takes the fast ones. With --cudagraphs each is recorded
+    whole by graphed(), on top of the compiled function when --compile is on (then compiled without inductor's own CUDA
+    graphs)."""
+    hot = globals()
+    for name in ("update", "plan", "adapt_step"):
+        if name not in hot:
+            continue
+        if args.compile == "on":
+            hot[name] = compiled(hot[name], device, cuda_graphs=name == "plan" and not args.cudagraphs)
+        if args.cudagraphs:
+            hot[name] = graphed(hot[name])
+
+
 def compiled(fn, device: torch.device, cuda_graphs: bool = True):
     """--compile: torch.compile(fn), its compile time printed at the first call. On a GPU with cuda_graphs, CUDA graphs
     ("reduce-overhead"), the outputs cloned because the next replay overwrites them (not for the updates: their graph
-    breaks at backward() split them into graphs whose outputs the next piece overwrites). Inductor's pattern matcher is
-    off: it crashes on this code (torch 2.11 CUDA, 2.13 CPU: "Not all inputs to pattern found in match.kwargs")."""
+    breaks at backward() split them into graphs whose outputs the next piece overwrites; --cudagraphs records them
+    whole instead, graphed()). Inductor's pattern matcher is off: it crashes on this code (torch 2.11 CUDA, 2.13 CPU:
+    "Not all inputs to pattern found in match.kwargs")."""
     if getattr(fn, "is_compiled", False):  # main() run twice in one process
         return fn
     graphs = device.type == "cuda" and cuda_graphs
@@ -1226,6 +1251,51 @@ def compiled(fn, device: torch.device, cuda_graphs: bool = True):
 
     call.is_compiled = True
     return call
+
+
+def graphed(fn, warmup: int = 3):
+    """--cudagraphs: fn recorded whole as one CUDA graph per kind of call and replayed (tensordict's CudaGraphModule).
+    A kind of call is what a replay cannot take anew, bound to its graph when recorded: the arguments that are not
+    tensors (model, optimisers, Args, the planner's explore flag, a missing warm-start mean) and the tensors that require
+    gradients (parameters, test-time adapters), which the graph reads and updates in place; and the shapes of the other
+    tensors (batch, context, merged weights, observation), which each call copies into the graph's input buffers. The
+    first warmup - 1 calls of a kind run fn as it is (compiling it under --compile), the next one records it; outputs
+    come back as clones, since the next replay overwrites the graph's own."""
+    if getattr(fn, "is_graphed", False):  # main() run twice in one process
+        return fn
+    from tensordict.nn import CudaGraphModule
+
+    flatten, unflatten = torch.utils._pytree.tree_flatten, torch.utils._pytree.tree_unflatten
+    graphs = {}  # kind -> the CudaGraphModule, whose function holds the bound arguments (so their ids stay theirs)
+
+    def call(*args):
+        leaves, spec = flatten(args)
+        copied = [isinstance(x, torch.Tensor) and not x.requires_grad for x in leaves]
+        kind = (spec, *(x.shape if c else x if isinstance(x, (int, float, str)) else id(x) for x, c in zip(leaves, copied)))
+        if kind not in graphs:
+            bound = [None if c else x for x, c in zip(leaves, copied)]
+
+            def with_bound(*tensors, bound=bound, copied=copied, spec=spec):
+                given = iter(tensors)
+                return fn(*unflatten([next(given) if c else x for x, c in zip(bound, copied)], spec))
+
+            graphs[kind] = CudaGraphModule(with_bound, warmup=warmup)
+        return graphs[kind](*(x for x, c in zip(leaves, copied) if c))
+
+    call.graphs, call.is_graphed, call.is_compiled = graphs, True, getattr(fn, "is_compiled", False)
+    return call
+
+
+def capturable(optimizers, on: bool):
+    """--cudagraphs: Adam with capturable=True, its step counts on the parameters' device, so that a recorded optimiser
+    step reads no host value; off: the default, step counts on the host. Set before the first update and after a
+    checkpoint's optimiser state is loaded, which brings the setting of the run that wrote it."""
+    for optimizer in optimizers:
+        for group in optimizer.param_groups:
+            group["capturable"] = on
+        for param, state in optimizer.state.items():
+            if "step" in state:
+                state["step"] = state["step"].to(param.device if on else "cpu")
 
 
 def describe_device(args: Args, device: torch.device) -> str:

@@ -1,15 +1,18 @@
-"""Speed of the hot paths on this machine, eager and compiled (--compile) side by side, per model size.
+"""Speed of the hot paths on this machine, eager, compiled (--compile) and as CUDA graphs (--cudagraphs, on the eager or
+the compiled functions) side by side, per model size.
 
 Measures, with the real environment and the scripts' own functions (claw_tdmpc2 for CLAW, dr_tdmpc2 for DR):
   loop     agent steps/s of CLAW's pretraining loop body (update + rollout hypernet pass + MPPI + env step)
   update   ms per CLAW two-phase update (world model + hypernet, then policy + hypernet)
   mppi     ms per planner call (adapters already merged)
-  compile  s spent in the first calls of the compiled functions (each input kind the loop and the planner
-           meet: first step of an episode or not, exploring or not); 0 for eager
+  compile  s spent in the first calls of the compiled or graphed functions (each input kind the loop and the
+           planner meet: first step of an episode or not, exploring or not; compiling, recording the CUDA graphs);
+           0 for eager
   adapt    ms per CLAW adaptation: one hypernet pass over 3 pi_con episodes + merge (eager in both modes)
   dr       ms per DR adaptation gradient step on fresh LoRA adapters (base frozen), dr_tdmpc2.adapt_step
 
-Usage: python benchmarks/speed.py [--sizes I F A] [--modes eager compiled] [--family reach] [--steps 30] [--cuda]
+Usage: python benchmarks/speed.py [--sizes I F A] [--modes eager compiled cudagraphs compiled-cudagraphs] [--family reach]
+       [--steps 30] [--cuda]   (the cudagraphs modes need --cuda)
 """
 
 from __future__ import annotations
@@ -52,7 +55,18 @@ def first_calls_seconds(calls) -> float:
     return time.perf_counter() - start
 
 
-def measure(size: str, family: str, steps: int, rank: int, compile: bool, device: torch.device) -> dict:
+MODES = {"eager": (False, False), "compiled": (True, False), "cudagraphs": (False, True), "compiled-cudagraphs": (True, True)}
+
+
+def fast(script, fn, compile: bool, graphs: bool, device: torch.device, planner: bool = False):
+    """fn as a script's main() rebinds it for --compile on/off and --cudagraphs (accelerate())."""
+    if compile:
+        fn = script.compiled(fn, device, cuda_graphs=planner and not graphs)
+    return script.graphed(fn) if graphs else fn
+
+
+def measure(size: str, family: str, steps: int, rank: int, mode: str, device: torch.device) -> dict:
+    compile, graphs = MODES[mode]
     torch.manual_seed(0)
     args = claw.Args(family=family, model_size=size, rank=rank)
     env = make_env(family, 0, seed=0)
@@ -62,9 +76,10 @@ def measure(size: str, family: str, steps: int, rank: int, compile: bool, device
     layout, n_wm, n_pi = claw.lora_layout(model, rank)
     hypernet = claw.Hypernet(2 * obs_dim + act_dim + 1, claw.lora_template(layout, n_wm + n_pi), args).to(device)
     optimizers = claw.make_optimizers(model, hypernet, args)
+    claw.capturable(optimizers, graphs)
     scale = claw.RunningScale(args.tau, device)
-    update = claw.compiled(claw.update, device, cuda_graphs=False) if compile else claw.update
-    plan = claw.compiled(claw.plan, device) if compile else claw.plan
+    update = fast(claw, claw.update, compile, graphs, device)
+    plan = fast(claw, claw.plan, compile, graphs, device, planner=True)
 
     test_context = collect_episodes(env, args.context_episodes, seed=0)  # 3 pi_con episodes, as at test time
     context = claw.context_tensor(test_context, device)
@@ -117,20 +132,20 @@ def measure(size: str, family: str, steps: int, rank: int, compile: bool, device
     compile_s = first_calls_seconds([update_step, loop_step, loop_step, mppi])
     result = {
         "size": size,
-        "mode": "compiled" if compile else "eager",
+        "mode": mode,
         "params": sum(p.numel() for p in model.base_parameters()),
-        "compile_s": compile_s if compile else 0.0,
+        "compile_s": compile_s if compile or graphs else 0.0,
         "update_ms": timed(update_step, steps, device),
         "mppi_ms": timed(mppi, steps, device),
         "adapt_ms": timed(adapt, steps, device),
         "context_rows": len(context),
     }
     result["loop_sps"] = 1000 / timed(loop_step, steps, device)
-    result["dr_step_ms"] = dr_gradient_step_ms(size, family, rank, test_context, compile, device, steps)
+    result["dr_step_ms"] = dr_gradient_step_ms(size, family, rank, test_context, compile, graphs, device, steps)
     return result
 
 
-def dr_gradient_step_ms(size, family, rank, test_context, compile, device, steps) -> float:
+def dr_gradient_step_ms(size, family, rank, test_context, compile, graphs, device, steps) -> float:
     """One test-time gradient step of the gradient-adapted baselines (dr_tdmpc2.adapt_step): the TD-MPC2 loss
     through fresh LoRA adapters on the context data, base frozen, Adam on the adapters only."""
     torch.manual_seed(0)
@@ -139,26 +154,29 @@ def dr_gradient_step_ms(size, family, rank, test_context, compile, device, steps
     model = dr.WorldModel(obs_dim, act_dim, size, args).to(device).requires_grad_(False)
     layout, n_wm, n_pi = dr.lora_layout(model, rank)
     phi = dr.lora_template(layout, n_wm + n_pi).to(device).requires_grad_(True)
-    optimizer, scale = torch.optim.Adam([phi], lr=args.learning_rate), dr.RunningScale(args.tau, device)
+    optimizer = torch.optim.Adam([phi], lr=args.learning_rate, capturable=graphs)
+    scale = dr.RunningScale(args.tau, device)
     replay, discount = dr.context_replay(test_context, device, args), dr.default_discount(args, episode_length(family))
-    adapt_step = dr.compiled(dr.adapt_step, device, cuda_graphs=False) if compile else dr.adapt_step
+    adapt_step = fast(dr, dr.adapt_step, compile, graphs, device)
 
     def step():
         adapt_step(model, phi, optimizer, scale, layout, *replay.sample(0, args.batch_size), discount, args)
 
-    step()  # compiles when compile is on
+    step()  # compiles when compile is on; timed()'s warm-up records the CUDA graph
     return timed(step, steps, device)
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", nargs="+", default=["I", "F"])
-    parser.add_argument("--modes", nargs="+", default=["eager", "compiled"], choices=["eager", "compiled"])
+    parser.add_argument("--modes", nargs="+", default=["eager", "compiled"], choices=list(MODES))
     parser.add_argument("--family", default="reach")
     parser.add_argument("--rank", type=int, default=16)
     parser.add_argument("--steps", type=int, default=30, help="timed repetitions per measurement")
     parser.add_argument("--cuda", action="store_true", help="measure on the GPU")
     cli = parser.parse_args()
+    if not cli.cuda and any(MODES[mode][1] for mode in cli.modes):
+        parser.error("the cudagraphs modes need --cuda")
     device = torch.device("cuda" if cli.cuda else "cpu")
     name = torch.cuda.get_device_name() if cli.cuda else f"CPU, {torch.get_num_threads()} threads"
     print(f"torch {torch.__version__}, {name}, family {cli.family}, rank {cli.rank}, {cli.steps} timed repetitions")
@@ -168,7 +186,7 @@ def main():
     print("|---|---|---|---|---|---|---|---|---|")
     for size in cli.sizes:
         for mode in cli.modes:
-            r = measure(size, cli.family, cli.steps, cli.rank, mode == "compiled", device)
+            r = measure(size, cli.family, cli.steps, cli.rank, mode, device)
             print(
                 f"| {size} | {r['mode']} | {r['params']:,} | {r['loop_sps']:.1f} | {r['update_ms']:.1f} | {r['mppi_ms']:.1f} | "
                 f"{r['compile_s']:.0f} | {r['adapt_ms']:.2f} ({r['context_rows']}) | {r['dr_step_ms']:.1f} |",
