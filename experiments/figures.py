@@ -141,7 +141,8 @@ def figure_exp1(rows, curves, out) -> str | None:
             points = select(curves, family=family, method=method, metric=metric)
             if points:
                 x, y = [p["step"] for p in points], [p["mean"] for p in points]
-                ax.plot(x, y, color=COLORS[method], label=LABELS[method])
+                # markers where a short evaluation leaves few points: a single one draws no line
+                ax.plot(x, y, color=COLORS[method], label=LABELS[method], marker="o" if len(points) < 5 else None)
                 ax.fill_between(x, *_interval(metric, points), color=COLORS[method], alpha=0.15)
         ax.set_xlabel("test-time environment steps")
 
