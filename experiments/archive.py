@@ -177,14 +177,14 @@ def archive_sweep(root: str, archive: str, carry: str | None = None) -> int:
             status = read_json(path, RUN_KEYS)["status"]
             if status == "done":
                 archive_run(os.path.join(root, name), archive)
+                if carry:
+                    shutil.rmtree(os.path.join(carry, name), ignore_errors=True)
+                archived += 1
+                continue
         except DamagedRun as damaged:
             print(f"warning: not archived: {damaged}")
             continue
-        if status == "done":
-            if carry:
-                shutil.rmtree(os.path.join(carry, name), ignore_errors=True)
-            archived += 1
-        elif carry:
+        if carry:
             print(f"carried: {name} (status {status}) -> {carry_run(os.path.join(root, name), carry)}")
         else:
             print(f"not archived: {name} (status {status})")
