@@ -154,6 +154,8 @@ class Args:
     """Exp 1 test-time agent steps per environment"""
     eval_episodes: int = 10
     """Exp 2 evaluation episodes per environment"""
+    eval_env_ids: tuple[int, ...] = ()
+    """the test environments both protocols run on (ids; default: every environment of the family)"""
     evaluate_after_training: bool = True
     """run both protocols on every environment after pretraining"""
 
@@ -711,6 +713,11 @@ def make_optimizers(model: WorldModel, hypernet: nn.Module, args: Args):
 # ---------------------------------------------------------------------------------------------
 # Evaluation: the shared protocols with CLAW's adapt (one hypernet pass) and act (MPPI)
 # ---------------------------------------------------------------------------------------------
+def evaluation_env_ids(args: Args) -> list[int]:
+    """The test environments evaluate() runs: --eval-env-ids, or every environment of the family."""
+    return list(args.eval_env_ids) or list(range(num_envs(args.family)))
+
+
 def evaluate(model, hypernet, layout, discount, writer, device, args: Args, progress_path: str | None = None) -> dict:
     model.eval()
     current = {"weights": model.base_weights(), "mean": None}
@@ -727,7 +734,7 @@ def evaluate(model, hypernet, layout, discount, writer, device, args: Args, prog
         return action.cpu().numpy()
 
     return evaluate_family(
-        range(num_envs(args.family)),
+        evaluation_env_ids(args),
         adapt,
         act,
         writer,
@@ -839,7 +846,7 @@ def main(args: Args, typed: set | None = None):
     replay = ReplayBuffer(total_timesteps + seed_steps + n_envs * ep_len, obs_dim, act_dim, n_envs, args.horizon, device)
     checkpoint_path = os.path.join(run_dir, "checkpoint.pt")
     global_step, burst_left, saved_at, saved_step = 0, args.burst_updates, time.time(), 0
-    clock = RunClock(args, total_timesteps, num_envs(args.family), ep_len)  # the estimate of how long the run takes
+    clock = RunClock(args, total_timesteps, len(evaluation_env_ids(args)), ep_len)  # the estimate of how long the run takes
 
     def save():  # atomic; also right after the prefill and the burst, and every --checkpoint-minutes
         nonlocal saved_at, saved_step
@@ -1054,6 +1061,7 @@ EVALUATION_FLAGS = (
     "online_eval_steps",
     "offline_adapt_steps",
     "eval_episodes",
+    "eval_env_ids",
     "iterations",
     "num_samples",
     "num_pi_trajs",
@@ -1073,6 +1081,9 @@ def check_ranges(args: Args):
     for key, (valid, text) in RANGES.items():
         if hasattr(args, key) and not valid(getattr(args, key)):
             raise SystemExit(f"error: {flag(key)} must be {text}, got {getattr(args, key)}")
+    ids, n_envs = getattr(args, "eval_env_ids", ()), num_envs(args.family)  # posthoc evaluates cheetah only
+    if len(set(ids)) < len(ids) or not all(0 <= e < n_envs for e in ids):
+        raise SystemExit(f"error: --eval-env-ids must be distinct ids in 0..{n_envs - 1} ({args.family}), got {list(ids)}")
     if args.min_std > args.max_std:
         raise SystemExit(f"error: need --min-std <= --max-std, got {args.min_std} > {args.max_std}")
     if not 0 < args.horizon < episode_length(args.family):

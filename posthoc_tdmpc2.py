@@ -1073,6 +1073,7 @@ EVALUATION_FLAGS = (
     "online_eval_steps",
     "offline_adapt_steps",
     "eval_episodes",
+    "eval_env_ids",
     "iterations",
     "num_samples",
     "num_pi_trajs",
@@ -1092,6 +1093,9 @@ def check_ranges(args: Args):
     for key, (valid, text) in RANGES.items():
         if hasattr(args, key) and not valid(getattr(args, key)):
             raise SystemExit(f"error: {flag(key)} must be {text}, got {getattr(args, key)}")
+    ids, n_envs = getattr(args, "eval_env_ids", ()), num_envs(args.family)  # posthoc evaluates cheetah only
+    if len(set(ids)) < len(ids) or not all(0 <= e < n_envs for e in ids):
+        raise SystemExit(f"error: --eval-env-ids must be distinct ids in 0..{n_envs - 1} ({args.family}), got {list(ids)}")
     if args.min_std > args.max_std:
         raise SystemExit(f"error: need --min-std <= --max-std, got {args.min_std} > {args.max_std}")
     if not 0 < args.horizon < episode_length(args.family):

@@ -9,8 +9,8 @@
   context size     the own-context offline protocol with contexts of 1, 3, 10 pi_con episodes (--context-episodes).
 
 Each arm is one call of claw_tdmpc2.evaluate with the checkpoint's saved arguments (seed, planner, context
-episodes; --eval-episodes and --online-eval-steps from here), started from the torch random state that
-`claw_tdmpc2.py --eval-only` starts from: the own arm reports exactly what
+episodes, the test environments of --eval-env-ids; --eval-episodes and --online-eval-steps from here), started from
+the torch random state that `claw_tdmpc2.py --eval-only` starts from: the own arm reports exactly what
     python claw_tdmpc2.py --eval-only --checkpoint CKPT --seed S --eval-episodes N --online-eval-steps M \\
         --context-episodes K  (and the checkpoint's planner flags: --num-samples, --iterations, ...)
 reports. The swapped arm feeds the hypernetwork the other environment's context (collected with that
@@ -217,14 +217,14 @@ def controls(
     }
 
 
-def table(header: list[str], columns: list[dict], n: int) -> list[str]:
-    """Markdown rows: one per environment, then the family mean with its 95% t-CI across environments."""
+def table(header: list[str], columns: list[dict]) -> list[str]:
+    """Markdown rows: one per evaluated environment, then their mean with its 95% t-CI across environments."""
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    for env_id in range(n):
+    for env_id in columns[0]:
         lines.append(f"| {env_id} | " + " | ".join(f"{c[env_id]:.1f}" for c in columns) + " |")
     cells = []
     for c in columns:
-        mean, ci = mean_ci([c[e] for e in range(n)])
+        mean, ci = mean_ci([c[e] for e in columns[0]])
         cells.append(f"{mean:.1f} ± {ci:.1f}")
     lines.append("| mean ± 95% CI | " + " | ".join(cells) + " |")
     return lines
@@ -235,7 +235,7 @@ def report(path: str, result: dict) -> str:
     lines = [
         f"# Context controls: {path}",
         "",
-        f"family {result['family']}, {n} environments; returns are means over {result['eval_episodes']} offline episodes "
+        f"family {result['family']}, {len(result['size'][next(iter(result['size']))])} of its {n} environments; returns are means over {result['eval_episodes']} offline episodes "
         "per environment; the mean row is the mean over environments with its 95% t-CI across environments.",
         "",
     ]
@@ -246,18 +246,18 @@ def report(path: str, result: dict) -> str:
         )
     for protocol, title in protocols:
         own, swapped = result["swap"]["own"][protocol], result["swap"]["swapped"][protocol]
-        drop = {e: own[e] - swapped[e] for e in range(n)}
+        drop = {e: own[e] - swapped[e] for e in own}
         lines += [
             f"## Own vs swapped context: {title}, {k}-episode contexts",
             "",
-            *table(["env j", "own context", f"context of env (j+{o}) mod {n}", "own - swapped"], [own, swapped, drop], n),
+            *table(["env j", "own context", f"context of env (j+{o}) mod {n}", "own - swapped"], [own, swapped, drop]),
             "",
         ]
     sizes = result["size"]
     lines += [
         "## Context size: own-context offline protocol",
         "",
-        *table(["env j", *[f"{e} episode{'s' * (e != 1)}" for e in sizes]], list(sizes.values()), n),
+        *table(["env j", *[f"{e} episode{'s' * (e != 1)}" for e in sizes]], list(sizes.values())),
         "",
     ]
     return "\n".join(lines)

@@ -162,10 +162,14 @@ SCALES = {
                    "--num-samples", "16", "--num-elites", "4", "--num-pi-trajs", "2", "--iterations", "1",
                    "--context-pool-episodes", "2", "--context-episodes", "1",
                    "--eval-episodes", "1", "--log-every", "10"],
-        "exp12": ["--online-eval-steps", "100", "--offline-adapt-steps", "0", "1"],
+        # two of Reach's six goals: a plumbing check, not a measurement
+        "exp12": ["--online-eval-steps", "100", "--offline-adapt-steps", "0", "1", "--eval-env-ids", "0", "1"],
         # --total-timesteps beyond cheetah_walker's 1000-step prefill (last flag wins)
         "exp345": ["--online-eval-steps", "100", "--total-timesteps", "1100"],
         "controls": ["--eval-episodes", "1", "--online-eval-steps", "20", "--context-episodes", "1", "2"],
+        # the CHECKPOINT_REPORTS' own flags (default: each tool's defaults)
+        "reports": {"context_effect.md": ["--episodes", "1", "--draws", "2", "--batch", "8"],
+                    "inspect_adapters.txt": ["--episodes", "1", "--draws", "2"]},
     },
 }
 # fmt: on
@@ -182,6 +186,7 @@ class Run:
     experiments: list = field(default_factory=list)
     train_env: int | None = None  # ST's --train-env-id, where a recipe names it
     needs: str | None = None  # the run whose checkpoint this one evaluates (experiment controls)
+    report_flags: dict = field(default_factory=dict)  # CHECKPOINT_REPORTS name -> the tool's flags, where not its defaults
 
     @property
     def name(self) -> str:
@@ -273,6 +278,7 @@ def recipe(experiment: str, scale: str) -> list[Run]:
         raise SystemExit(f"error: unknown experiment {experiment!r}; valid: budget controls decoder exp1 exp2 exp3 exp4 exp5")
     for run in runs:
         run.experiments.append(experiment)
+        run.report_flags = s.get("reports", {})
     return runs
 
 
@@ -418,7 +424,7 @@ def recorded_command(record: dict) -> list[str]:
 _STOP = threading.Event()  # set when a local sweep is interrupted: no new runs, and runs end as "interrupted"
 
 
-def measure_checkpoint(run_dir: str, method: str, env: dict) -> None:
+def measure_checkpoint(run_dir: str, method: str, env: dict, flags: dict | None = None) -> None:
     """The CHECKPOINT_REPORTS of a finished run (seconds to a few minutes each); a failure is a warning: the run is
     done all the same, and `python diagnostics/<script> CHECKPOINT > REPORT` can redo it while the checkpoint exists."""
     for report, (script, methods) in CHECKPOINT_REPORTS.items():
@@ -426,6 +432,7 @@ def measure_checkpoint(run_dir: str, method: str, env: dict) -> None:
             continue
         path = os.path.join(run_dir, report)
         command = [sys.executable, os.path.join(REPO, "diagnostics", script), os.path.join(run_dir, "checkpoint.pt")]
+        command += (flags or {}).get(report, [])
         with open(os.path.join(run_dir, "stdout.log"), "a") as log, open(path + ".partial", "w") as out:
             returncode = subprocess.run(
                 command, cwd=REPO, env={**os.environ, **env, "OMP_NUM_THREADS": "1"}, stdout=out, stderr=log
@@ -504,7 +511,7 @@ class RunJob(submitit.helpers.Checkpointable):
             )
             status = "interrupted" if stopped else "done" if returncode == 0 else "failed"
             if status == "done":
-                measure_checkpoint(run_dir, run.method, env)
+                measure_checkpoint(run_dir, run.method, env, run.report_flags)
             write_status(
                 run_dir,
                 run,

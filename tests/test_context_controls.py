@@ -18,13 +18,14 @@ from common.evaluation import offline_adaptation
 from diagnostics import context_controls
 
 N_ENVS = 6  # reach
+EVAL_ENVS = [0, 1]  # the checkpoint's --eval-env-ids: every arm evaluates these two goals
 
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     # the smallest planner (the tests evaluate it some hundred episodes): its cost is most of this file's
     planner = dict(iterations=1, num_samples=16, num_elites=4, num_pi_trajs=2)
-    args = tiny_args(tmp_path_factory.mktemp("claw"), **planner, log_every=100, compile="off")
+    args = tiny_args(tmp_path_factory.mktemp("claw"), **planner, log_every=100, compile="off", eval_env_ids=tuple(EVAL_ENVS))
     claw.main(args)
     return os.path.join(args.run_dir, "checkpoint.pt")
 
@@ -94,16 +95,16 @@ def test_own_arm_is_claws_evaluation_and_swapped_arm_feeds_the_other_context(che
     assert result["context_episodes"] == 1 and set(result["size"]) == {1, 2}
     own, swapped = result["swap"]["own"]["offline"], result["swap"]["swapped"]["offline"]
     for column in (own, swapped, result["size"][1], result["size"][2]):
-        assert sorted(column) == list(range(N_ENVS)) and all(np.isfinite(v) for v in column.values())
-    # hypernet inputs, in order: own arm, swapped arm (env j gets env j+1's context), the 2-episode own arm;
+        assert sorted(column) == EVAL_ENVS and all(np.isfinite(v) for v in column.values())
+    # hypernet inputs, in order: own arm, swapped arm (env j gets env (j+1) mod 6's context), the 2-episode own arm;
     # the 1-episode size arm is the own arm (same key: not run again)
     args = claw.Args(
         **{k: v for k, v in torch.load(checkpoint, weights_only=False)["args"].items() if k in claw.Args.__dataclass_fields__}
     )
     expected = (
-        [own_context(args, j, 1) for j in range(N_ENVS)]
-        + [own_context(args, (j + 1) % N_ENVS, 1) for j in range(N_ENVS)]
-        + [own_context(args, j, 2) for j in range(N_ENVS)]
+        [own_context(args, j, 1) for j in EVAL_ENVS]
+        + [own_context(args, (j + 1) % N_ENVS, 1) for j in EVAL_ENVS]
+        + [own_context(args, j, 2) for j in EVAL_ENVS]
     )
     assert len(inputs) == len(expected)
     for got, want in zip(inputs, expected):
@@ -131,7 +132,7 @@ def test_online_protocol_own_vs_swapped(checkpoint):
         checkpoint, swap_offset=3, context_episodes=(1,), eval_episodes=1, online_eval_steps=100, log=lambda line: None
     )
     own, swapped = result["swap"]["own"]["online"], result["swap"]["swapped"]["online"]
-    assert sorted(own) == sorted(swapped) == list(range(N_ENVS))
+    assert sorted(own) == sorted(swapped) == EVAL_ENVS
     assert all(np.isfinite(v) for v in [*own.values(), *swapped.values()])  # one finished 100-step episode each
     assert own != swapped
     # online steps run before the offline episodes and draw planner noise: the offline arm differs from the online-free one
@@ -162,9 +163,9 @@ def test_an_interrupted_run_goes_on_from_its_finished_arms_and_environments(chec
     argv = [checkpoint, *ARGV]
     calls, offline = [], common_evaluation.offline_adaptation
 
-    def killed_in_the_second_arm(*args, **kwargs):  # arm 1 runs environments 0-5, arm 2 is killed in environment 2
+    def killed_in_the_second_arm(*args, **kwargs):  # arm 1 runs environments 0 and 1, arm 2 is killed in environment 1
         calls.append(1)
-        if len(calls) == N_ENVS + 3:
+        if len(calls) == len(EVAL_ENVS) + 2:
             raise KeyboardInterrupt
         return offline(*args, **kwargs)
 
@@ -179,7 +180,7 @@ def test_an_interrupted_run_goes_on_from_its_finished_arms_and_environments(chec
     monkeypatch.setattr(common_evaluation, "offline_adaptation", lambda *a, **k: calls.append(1) or offline(*a, **k))
     resumed = context_controls.main([*argv, "--json", str(json_path)])
     assert resumed == uninterrupted[0]
-    assert len(calls) == (N_ENVS - 2) + N_ENVS  # the rest of arm 2, then the 2-episode arm; arm 1 not rerun
+    assert len(calls) == (len(EVAL_ENVS) - 1) + len(EVAL_ENVS)  # the rest of arm 2, then the 2-episode arm; arm 1 not rerun
     assert sorted(os.listdir(tmp_path)) == ["c.json"]  # progress files removed once the result is written
 
 
@@ -189,13 +190,13 @@ def test_an_arm_interrupted_under_other_settings_is_not_taken_up(checkpoint, uni
     argv = [checkpoint, *ARGV]
     calls, offline = [], common_evaluation.offline_adaptation
 
-    def killed_in_environment_3(*args, **kwargs):
+    def killed_in_environment_1(*args, **kwargs):
         calls.append(1)
-        if len(calls) == 4:
+        if len(calls) == 2:
             raise KeyboardInterrupt
         return offline(*args, **kwargs)
 
-    monkeypatch.setattr(common_evaluation, "offline_adaptation", killed_in_environment_3)
+    monkeypatch.setattr(common_evaluation, "offline_adaptation", killed_in_environment_1)
     json_path = tmp_path / "c.json"
     with pytest.raises(KeyboardInterrupt):  # ARGV's --eval-episodes 1, here 2 (the last flag wins)
         context_controls.main([*argv, "--eval-episodes", "2", "--json", str(json_path)])
@@ -203,5 +204,5 @@ def test_an_arm_interrupted_under_other_settings_is_not_taken_up(checkpoint, uni
     calls.clear()
     monkeypatch.setattr(common_evaluation, "offline_adaptation", lambda *a, **k: calls.append(1) or offline(*a, **k))
     assert context_controls.main([*argv, "--json", str(json_path)]) == uninterrupted[0]
-    assert len(calls) == 3 * N_ENVS  # own, swapped and 2-episode arms, every environment run again
+    assert len(calls) == 3 * len(EVAL_ENVS)  # own, swapped and 2-episode arms, every environment run again
     assert sorted(os.listdir(tmp_path)) == ["c.json"]

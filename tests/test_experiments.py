@@ -402,7 +402,7 @@ def test_end_to_end_sweep_of_two_tiny_runs(tmp_path, capsys):
     out = capsys.readouterr().out
     assert f"skip (done)  {runs[0].name}" in out and f"skip (done)  {control.name}" in out and "ready" not in out
     result = json.load(open(tmp_path / control.name / "controls.json"))
-    assert sorted(result["size"]) == ["1", "2"] and sorted(result["swap"]["own"]["offline"]) == [str(j) for j in range(6)]
+    assert sorted(result["size"]) == ["1", "2"] and sorted(result["swap"]["own"]["offline"]) == ["0", "1"]
     assert "## Context size" in (tmp_path / control.name / "controls.md").read_text()
     # not a training run
     assert str(tmp_path / control.name) in dict(aggregate.summarize(aggregate.load_runs(str(tmp_path)))[2])
@@ -464,7 +464,7 @@ def test_carried_runs_outlive_their_machine_and_archived_weights_feed_the_contro
     carried = []
     monkeypatch.setattr(sweep.RunJob, "CARRY_POLL_S", 0.1)
     # the reports measured on a finished checkpoint: test_end_to_end_sweep_of_two_tiny_runs checks them
-    monkeypatch.setattr(sweep, "measure_checkpoint", lambda run_dir, method, env: None)
+    monkeypatch.setattr(sweep, "measure_checkpoint", lambda run_dir, method, env, flags: None)
     monkeypatch.setattr(
         sweep, "carry_run", lambda run_dir, to: carried.append(run_dir) or archive_module.carry_run(run_dir, to)
     )

@@ -186,7 +186,7 @@ def test_flags_typed_on_the_command_line_are_checked_even_at_their_default():
 def test_sigint_saves_at_the_next_episode_end_and_resume_ends_like_an_uninterrupted_run(tmp_path):
     """A real SIGINT to a running script: it saves at the next episode end, prints the command that resumes it and
     exits 130; --resume then ends with the weights of a run that was never interrupted."""
-    script = [sys.executable, os.path.join(REPO, "dr_tdmpc2.py"), *TINY, "--total-timesteps", "1000"]
+    script = [sys.executable, os.path.join(REPO, "dr_tdmpc2.py"), *TINY, "--total-timesteps", "800"]
     env = {**os.environ, "MUJOCO_GL": "disable", "OMP_NUM_THREADS": "1"}
     subprocess.run(script + ["--run-dir", str(tmp_path / "whole")], env=env, check=True, capture_output=True)
     run = subprocess.Popen(

@@ -76,6 +76,9 @@ def test_bad_counts_and_budgets_fail_before_any_work(script, tmp_path):
                 r"--total-timesteps: 5000 must exceed the random-action prefill of 10000 steps",
             )
         )
+    if script is not posthoc:  # post-hoc evaluates cheetah only: it has no --eval-env-ids
+        for ids in ((6,), (-1,), (0, 0)):
+            cases.append((dict(eval_env_ids=ids), r"--eval-env-ids must be distinct ids in 0\.\.5 \(reach\), got \["))
     for overrides, message in cases:
         with pytest.raises(SystemExit, match=message):
             script.main(args_for(script, tmp_path, **overrides))
@@ -287,17 +290,19 @@ def raise_at_step(progress_text, step: int):
 EXACT = {
     "claw": (
         claw,
-        dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100),
+        dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100, eval_env_ids=(0, 1)),
         [
             ("update", lambda f: raise_on_call(f, 3), 600),  # in the burst: the checkpoint after the prefill
             ("progress_text", lambda f: raise_at_step(f, 620), 600),  # after the burst, before an episode ends
             ("progress_text", lambda f: raise_at_step(f, 760), 700),  # after a periodic checkpoint at an episode end
-            ("online_adaptation", lambda f: raise_on_call(f, 3), 800),  # in the final evaluation, goal 2
+            ("online_adaptation", lambda f: raise_on_call(f, 2), 800),  # in the final evaluation, goal 1
         ],
     ),
     "dr": (
         dr,
-        dict(family="reach", rank=2, total_timesteps=800, checkpoint_every=100, offline_adapt_steps=(0, 2)),
+        dict(
+            family="reach", rank=2, total_timesteps=800, checkpoint_every=100, offline_adapt_steps=(0, 2), eval_env_ids=(0, 1)
+        ),
         [
             ("progress_text", lambda f: raise_at_step(f, 760), 700),
             ("offline_adaptation", lambda f: raise_on_call(f, 1), 800),  # in goal 0's evaluation: nothing to keep
@@ -349,7 +354,7 @@ def test_killed_and_resumed_runs_equal_uninterrupted_ones(name, tmp_path, capsys
             assert torch.equal(value, resumed[part][key]), (part, key)
     # an evaluation killed after some environments takes them from its progress file; the rest and the
     # family results equal the uninterrupted run's
-    finished = {"claw": 2, "dr": 1, "posthoc": 0}[name]
+    finished = {"claw": 1, "dr": 1, "posthoc": 0}[name]
     assert (
         f"resumed the evaluation from {tmp_path / 'killed' / 'evaluation_progress.pt'}: {finished} environments done" in out
     ) == (finished > 0)
