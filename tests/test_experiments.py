@@ -612,7 +612,7 @@ def test_learn_recipes_and_budget_training_curves(monkeypatch):
         exp12
     ) == 4 * 4 * 3
     exp12_steps = {r.family: r.extra[r.extra.index("--total-timesteps") + 1] for r in exp12 if "--total-timesteps" in r.extra}
-    assert exp12_steps["push"] == "100000" and exp12_steps["go1"] == "70000"  # the budgets the curves chose
+    assert exp12_steps["push"] == "40000" and exp12_steps["go1"] == "70000"  # the budgets the curves chose
     decoder_and_controls = sweep.plan_runs(["decoder"], "learn")  # Exp 1/2's CLAW runs with --decoder-coef, named apart
     decoder = [r for r in decoder_and_controls if r.method == "claw_decoder"]
     controls = sweep.plan_runs(["controls"], "learn")
