@@ -232,10 +232,11 @@ def table(header: list[str], columns: list[dict]) -> list[str]:
 
 def report(path: str, result: dict) -> str:
     n, k, o = result["n_envs"], result["context_episodes"], result["swap_offset"]
+    evaluated = len(result["swap"]["own"]["offline"])  # the checkpoint's --eval-env-ids, or all n
     lines = [
         f"# Context controls: {path}",
         "",
-        f"family {result['family']}, {len(result['size'][next(iter(result['size']))])} of its {n} environments; returns are means over {result['eval_episodes']} offline episodes "
+        f"family {result['family']}, {evaluated} of its {n} environments; returns are means over {result['eval_episodes']} offline episodes "
         "per environment; the mean row is the mean over environments with its 95% t-CI across environments.",
         "",
     ]
