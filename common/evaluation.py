@@ -13,7 +13,6 @@ import os
 from typing import Callable
 
 import numpy as np
-import scipy.stats
 from tqdm import tqdm
 
 from common.context import collect_episodes
@@ -99,6 +98,8 @@ def mean_ci(values, confidence: float = 0.95) -> tuple[float, float]:
     mean = float(values.mean())
     if values.size < 2:
         return mean, float("nan")
+    import scipy.stats  # here, not at the top: its import costs every script's start-up ~1.7 s
+
     sem = scipy.stats.sem(values)
     return mean, float(sem * scipy.stats.t.ppf(0.5 + confidence / 2, values.size - 1))
 
