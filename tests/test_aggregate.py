@@ -52,6 +52,50 @@ def test_exp1_claim_follows_welch_intervals_and_the_oracle_margin():
     assert claim([40.0, 100.0, 170.0])["verdict"] == "not separable at n = 3"
 
 
+def test_a_family_with_runs_missing_is_named_and_left_out_of_the_verdict():
+    returns = {
+        "claw": [100.0, 104.0, 108.0],
+        "dr": [50.0, 55.0, 52.0],
+        "st": [60.0, 62.0, 58.0],
+        "oracle": [101.0, 106.0, 107.0],
+    }
+    reach = [fake_run(m, "reach", seed, online(v)) for m, vs in returns.items() for seed, v in enumerate(vs, 1)]
+    push = [fake_run(m, "push", 1, online(vs[0])) for m, vs in returns.items()]  # one seed so far
+    claim = verdicts(reach + push)["CLAW tracks the oracle and beats DR and ST online"]
+    assert claim["verdict"] == "reproduced"  # reach decides; push is not tested yet
+    assert claim["evidence"][0] == "by family: push runs missing; reach reproduced"
+    assert "push Exp 1 return, CLAW - DR: runs missing (1 vs 1 seeds)" in claim["evidence"]
+    # a contradiction in a complete family decides, whatever the other family lacks
+    worse = [fake_run("st", "walker", s, online(500.0 + s)) for s in (1, 2, 3)]
+    worse += [fake_run(m, "walker", s, online(vs[s - 1])) for m, vs in returns.items() if m != "st" for s in (1, 2, 3)]
+    claim = verdicts(reach + push + worse)["CLAW tracks the oracle and beats DR and ST online"]
+    assert claim["verdict"] == "not reproduced"
+    assert claim["evidence"][0] == "by family: push runs missing; reach reproduced; walker not reproduced"
+    alone = verdicts(push)["CLAW tracks the oracle and beats DR and ST online"]
+    assert alone["verdict"] == "runs missing" and not alone["evidence"][0].startswith("by family")
+
+
+def test_go1_claim_compares_each_direction_with_the_oracle():
+    def directions(forward, backward):
+        return {"eval/online/env0/episodic_return": [(100, forward)], "eval/online/env1/episodic_return": [(100, backward)]}
+
+    runs = [fake_run("oracle", "go1", s, directions(300.0 + s, 280.0 - s)) for s in (1, 2, 3)]
+    runs += [fake_run("dr", "go1", s, directions(150.0 + 2 * s, 140.0 + s)) for s in (1, 2, 3)]
+    claim = verdicts(runs)["DR is good at neither Go1 direction and ST does not close the backward gap"]
+    assert claim["verdict"] == "runs missing" and claim["evidence"][2].endswith("runs missing (3 vs 0 seeds)")
+    st = [fake_run("st", "go1", s, directions(310.0, 60.0 + 5 * s)) for s in (1, 2, 3)]
+    claim = verdicts(runs + st)["DR is good at neither Go1 direction and ST does not close the backward gap"]
+    assert claim["verdict"] == "reproduced"
+    assert [line.split(":")[0] for line in claim["evidence"]] == [
+        "go1 forward Exp 1 return, Oracle - DR",
+        "go1 backward Exp 1 return, Oracle - DR",
+        "go1 backward Exp 1 return, Oracle - ST",
+    ]
+    closed = [fake_run("st", "go1", s, directions(310.0, 300.0 + s)) for s in (1, 2, 3)]  # ST beats the backward oracle
+    claim = verdicts(runs + closed)["DR is good at neither Go1 direction and ST does not close the backward gap"]
+    assert claim["verdict"] == "not reproduced"
+
+
 def test_exp2_collapse_is_paired_against_the_best_earlier_sweep_point():
     def sweep(values):  # x = 0, 10, 1000 offline steps
         return {"eval/offline/episodic_return": [(0, values[0]), (10, values[1]), (1000, values[2])]}

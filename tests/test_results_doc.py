@@ -1,8 +1,8 @@
 """RESULTS.md states the paper's claims in the words of results/learn/runs/claims.md, so the two cannot drift.
 
 claims.md (written by experiments/aggregate.py) has one line per claim, "- **<claim> (Exp k): <verdict>**", and under it
-one line per comparison, "  - <what>: <difference> [<low>, <high>] (<n>): <verdict>". Every claim line and every
-comparison line must appear verbatim in RESULTS.md, each claim with its verdict also in the "At a glance" section,
+one line per comparison, "  - <what>: <difference> [<low>, <high>] (<n>): <verdict>", after a "  - by family: ..." line
+where a claim spans families. Every claim line, family line and comparison line must appear verbatim in RESULTS.md, each claim with its verdict also in the "At a glance" section,
 and the intervals and verdicts are checked one by one so that a failure names what differs. The figures and files
 RESULTS.md links to must exist, and RESULTS.md must stay under 25 KB. The tables in results/learn/runs are what
 experiments/aggregate.py writes from the archived runs there, byte for byte."""
@@ -32,11 +32,15 @@ def read(path: str) -> str:
 
 
 def parse_claims(text: str) -> list[dict]:
-    """[{claim, verdict, line, rows: [{line, interval, verdict}]}] from claims.md's text."""
+    """[{claim, verdict, line, by_family, rows: [{line, interval, verdict}]}] from claims.md's text."""
     claims: list[dict] = []
     for line in text.splitlines():
         if m := CLAIM.match(line):
-            claims.append({"claim": m["claim"], "verdict": m["verdict"], "line": line[2:].strip(), "rows": []})
+            claims.append(
+                {"claim": m["claim"], "verdict": m["verdict"], "line": line[2:].strip(), "rows": [], "by_family": None}
+            )
+        elif line.startswith("  - by family: ") and claims:
+            claims[-1]["by_family"] = line.strip()[2:]
         elif (m := ROW.match(line)) and claims:
             found = INTERVAL.search(m["text"])
             claims[-1]["rows"].append(
@@ -59,6 +63,8 @@ def missing(claims_text: str, results_text: str) -> list[str]:
     for c in parse_claims(claims_text):
         if c["line"] not in results_text:
             out.append(f"claim line: {c['line']}")
+        if c["by_family"] and c["by_family"] not in results_text:
+            out.append(f"family line: {c['by_family']}")
         if f"**{c['claim']}: {c['verdict']}**" not in summary:
             out.append(f"claim not in 'At a glance' with its verdict: {c['claim']}: {c['verdict']}")
         for r in c["rows"]:
@@ -74,12 +80,13 @@ def texts() -> tuple[str, str]:
     return read(CLAIMS), read(RESULTS)
 
 
-def test_claims_file_parses_into_five_claims_with_intervals(texts):
+def test_claims_file_parses_into_six_claims_with_intervals(texts):
     claims = parse_claims(texts[0])
-    assert len(claims) == 5, [c["claim"] for c in claims]
+    assert len(claims) == 6, [c["claim"] for c in claims]
     rows = [r for c in claims for r in c["rows"]]
-    assert len(rows) >= 5 and all(c["rows"] for c in claims)
+    assert len(rows) >= 6 and all(c["rows"] for c in claims)
     assert all(r["interval"] for r in rows if not r["verdict"].startswith("runs missing"))
+    assert all(c["by_family"] for c in claims[:2])  # Exp 1 and 2 span the Exp 1/2 families
 
 
 def test_results_quotes_every_claim_verdict_and_interval(texts):
@@ -95,8 +102,12 @@ def test_check_fails_when_an_interval_or_verdict_drifts(texts):
     changed = row["interval"].replace(row["interval"][-2], "9" if row["interval"][-2] != "9" else "8", 1)
     assert missing(claims_text, results_text.replace(row["interval"], changed))
     # claims.md with a verdict the RESULTS text does not state
-    flipped = claims_text.replace(claims[-1]["line"], claims[-1]["line"].replace(claims[-1]["verdict"], "runs missing"))
+    decided = next(c for c in claims if c["verdict"] != "runs missing")
+    flipped = claims_text.replace(decided["line"], decided["line"].replace(decided["verdict"], "runs missing"))
     assert any("claim" in m for m in missing(flipped, results_text))
+    # claims.md with a family verdict the RESULTS text does not state
+    family = claims[0]["by_family"]
+    assert any("family line" in m for m in missing(claims_text.replace(family, family + "; go1 reproduced"), results_text))
 
 
 def test_linked_files_exist():
