@@ -7,6 +7,7 @@ exp2.png  return (and success) vs offline gradient steps (symlog x); CLAW's pass
 exp3.png  Cheetah/Walker return vs base parameter count (log x) for CLAW, FiLM, Concat; ratio to CLAW
 exp4.png  return vs LoRA rank, and vs adapter size as % of the world model, FiLM/Concat for reference
 exp5.png  Cheetah return: CLAW (joint) vs post-hoc hypernet
+go1.png   Go1 Exp 1 return per running direction (forward, backward) per method: the paper's bimodality claim
 controls.png  CLAW's (and CLAW + decoder's) return with its own minus with another environment's context, and return vs context size
 training.png  training-episode return vs agent steps: ST per embodiment (experiment budget), and every method of
               Exp 1/2 per family, beside the random policy's return
@@ -303,6 +304,37 @@ def figure_exp5(rows, curves, out) -> str | None:
     return None
 
 
+def figure_go1(rows, curves, out) -> str | None:
+    """Go1's Exp 1 return per direction and method, side by side: DR's one model against the Oracle's in each
+    direction, and ST (trained forward) on the backward one."""
+    directions = ("forward", "backward")  # env 0, env 1
+    methods = [m for m in COLORS if select(rows, family="go1", method=m, metric="online_return_env0")]
+    if not methods:
+        return "go1: no Go1 Exp 1 runs"
+    fig, ax = plt.subplots(figsize=(1.6 * len(methods) + 2.5, 3.5))
+    width = 0.8 / len(methods)
+    shown = []
+    for i, method in enumerate(methods):
+        bars = [select(rows, family="go1", method=method, metric=f"online_return_env{env}") for env in range(2)]
+        bars = [b[0] for b in bars if b]
+        shown += bars
+        ax.bar(
+            [env + (i - (len(methods) - 1) / 2) * width for env in range(len(bars))],
+            [b["mean"] for b in bars],
+            width,
+            yerr=_yerr("return", bars),
+            color=COLORS[method],
+            label=LABELS[method],
+            capsize=3,
+        )
+    ax.set_xticks(range(len(directions)), directions)
+    ax.set(ylabel="Exp 1 episode return", title=f"Go1, size {shown[0]['size']}, {_seeds(shown)}")
+    ax.legend(fontsize="small")
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "go1.png"), dpi=120)
+    return None
+
+
 def figure_training(training, out) -> str | None:
     """One panel per (family, training environment): each method's mean training-episode return per step window,
     95% CI band, and the random policy's return."""
@@ -391,7 +423,7 @@ def main(argv=None):
     rows, curves, problems = summarize(runs)
     for dir_, why in problems:  # the damaged ones were named as they were read
         print(f"not aggregated: {os.path.basename(dir_)}: {why}")
-    for figure in (figure_exp1, figure_exp2, figure_exp3, figure_exp4, figure_exp5):
+    for figure in (figure_exp1, figure_exp2, figure_exp3, figure_exp4, figure_exp5, figure_go1):
         skipped = figure(rows, curves, out)
         print(f"skipped {skipped}" if skipped else f"wrote {os.path.join(out, figure.__name__[7:] + '.png')}")
     skipped = figure_training(training_curves(runs), out)

@@ -96,6 +96,30 @@ def test_go1_claim_compares_each_direction_with_the_oracle():
     assert claim["verdict"] == "not reproduced"
 
 
+def test_go1_figure_draws_each_method_per_direction(tmp_path, monkeypatch):
+    def directions(forward, backward):
+        return {"eval/online/env0/episodic_return": [(100, forward)], "eval/online/env1/episodic_return": [(100, backward)]}
+
+    runs = [
+        fake_run(m, "go1", s, directions(100.0 * k + s, 50.0 * k - s))
+        for k, m in enumerate(("dr", "oracle"), 1)
+        for s in (1, 2)
+    ]
+    rows, curves, _ = aggregate.summarize(runs)
+    saved = []
+    monkeypatch.setattr(figures.plt.Figure, "savefig", lambda fig, path, **kwargs: saved.append(fig))
+    assert figures.figure_go1(rows, curves, str(tmp_path)) is None
+    (ax,) = saved[0].axes
+    heights = {
+        c.get_label(): [round(p.get_height(), 1) for p in c.patches]
+        for c in ax.containers
+        if c.get_label() in ("DR", "Oracle")
+    }
+    assert heights == {"DR": [101.5, 48.5], "Oracle": [201.5, 98.5]}
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["forward", "backward"]
+    assert figures.figure_go1(aggregate.summarize(runs[:0])[0], [], str(tmp_path)) == "go1: no Go1 Exp 1 runs"
+
+
 def test_exp2_collapse_is_paired_against_the_best_earlier_sweep_point():
     def sweep(values):  # x = 0, 10, 1000 offline steps
         return {"eval/offline/episodic_return": [(0, values[0]), (10, values[1]), (1000, values[2])]}
