@@ -133,8 +133,8 @@ CSVS = ("summary.csv", "curves.csv", "controls.csv", "training_curves.csv")
 def test_committed_tables_are_what_aggregate_writes_from_the_archived_runs(tmp_path, monkeypatch, capsys):
     """Regenerates every table of results/learn/runs from its archived runs (their scalars.json: seconds) into an empty
     directory and compares. The training curves' random-policy reference is a rollout per family (minutes on Walker):
-    here it is the committed training_curves.csv's, so every other number of that table is regenerated; .ci/run
-    regenerates the tables with the rollouts too."""
+    here it is the committed training_curves.csv's, so every other number of that table is regenerated.
+    `python experiments/aggregate.py EMPTY_DIR results/learn/runs` recomputes it with the rollouts."""
     from experiments import aggregate
 
     with open(os.path.join(ARCHIVE, "training_curves.csv"), newline="") as f:
