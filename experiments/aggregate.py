@@ -412,11 +412,12 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
         ]
         return found[0] if len(found) == 1 else {}
 
-    def compare(label, a: dict, b: dict, track_of=None, paired=False):
+    def compare(label, a: dict, b: dict, track_of=None, paired=False, family=None):
+        """One comparison; family (Exp 1/2) groups it into its claim's per-family verdicts."""
         seeds = sorted(set(a) & set(b))  # a paired difference needs both values from the same seed
         if len(a) < 2 or len(b) < 2 or (paired and len(seeds) < 2):
             have = f"{len(seeds)} seed(s) with both values" if paired else f"{len(a)} vs {len(b)} seeds"
-            return {"label": label, "verdict": "missing", "text": f"{label}: runs missing ({have})"}
+            return {"label": label, "verdict": "missing", "family": family, "text": f"{label}: runs missing ({have})"}
         if paired:
             mean, low, high = difference_ci([a[s] for s in seeds], [b[s] for s in seeds], paired=True)
             n = f"paired over {len(seeds)} seeds"
@@ -430,6 +431,7 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
             "label": label,
             "verdict": verdict,
             "n": min(len(a), len(b)),
+            "family": family,
             "text": f"{label}: {mean:+.1f} [{low:+.1f}, {high:+.1f}] ({n}{bound}): {verdict}",
         }
 
@@ -440,9 +442,9 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
         claw = runs_of("claw", family, "online_return")
         oracle = runs_of("oracle", family, "online_return")
         parts += [
-            dict(compare(f"{family} Exp 1 return, CLAW - DR", claw, runs_of("dr", family, "online_return")), family=family),
-            dict(compare(f"{family} Exp 1 return, CLAW - ST", claw, runs_of("st", family, "online_return")), family=family),
-            dict(compare(f"{family} Exp 1 return, CLAW - Oracle (tracks)", claw, oracle, track_of=oracle), family=family),
+            compare(f"{family} Exp 1 return, CLAW - DR", claw, runs_of("dr", family, "online_return"), family=family),
+            compare(f"{family} Exp 1 return, CLAW - ST", claw, runs_of("st", family, "online_return"), family=family),
+            compare(f"{family} Exp 1 return, CLAW - Oracle (tracks)", claw, oracle, track_of=oracle, family=family),
         ]
     no_exp12 = [{"label": "exp12", "verdict": "missing", "n": 0, "text": "no finished DR, ST or Oracle run"}]
     results.append(("CLAW tracks the oracle and beats DR and ST online (Exp 1)", parts or no_exp12))
@@ -458,20 +460,22 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
                 if metric == "offline_return"
             }
             if len(sweep) < 2:
-                parts.append(dict(compare(f"{family} Exp 2 {method.upper()}", {}, {}), family=family))
+                parts.append(compare(f"{family} Exp 2 {method.upper()}", {}, {}, family=family))
                 continue
             most = max(sweep)
             peak = max((x for x in sweep if x != most), key=lambda x: sum(sweep[x].values()) / len(sweep[x]))
-            collapse = compare(
-                f"{family} Exp 2 {method.upper()} collapses: return at {peak} steps (its best before {most}) - at {most}",
-                sweep[peak],
-                sweep[most],
-                paired=True,
+            parts.append(
+                compare(
+                    f"{family} Exp 2 {method.upper()} collapses: return at {peak} steps (its best before {most}) - at {most}",
+                    sweep[peak],
+                    sweep[most],
+                    paired=True,
+                    family=family,
+                )
             )
-            parts.append(dict(collapse, family=family))
             if method != "oracle":
-                beaten = compare(f"{family} Exp 2 CLAW (one pass) - {method.upper()} at {most} steps", claw, sweep[most])
-                parts.append(dict(beaten, family=family))
+                label = f"{family} Exp 2 CLAW (one pass) - {method.upper()} at {most} steps"
+                parts.append(compare(label, claw, sweep[most], family=family))
     results.append(("Gradient methods collapse with many offline steps, CLAW does not (Exp 2)", parts or no_exp12))
     claw = runs_of("claw", "cheetah_walker", "online_return", size=exp4_size, rank=exp4_rank)
     results.append(
@@ -536,7 +540,7 @@ def claims(values: dict, exp4_size: str = "F", exp4_rank: int = 8) -> list[dict]
     )
     out = []
     for claim, parts in results:
-        families = list(dict.fromkeys(p["family"] for p in parts if "family" in p))
+        families = list(dict.fromkeys(p["family"] for p in parts if p.get("family")))
         by_family = {f: overall([p for p in parts if p.get("family") == f]) for f in families}
         judged = [p for p in parts if by_family.get(p.get("family")) != "runs missing"] if families else parts
         verdict = overall(judged) if judged else "runs missing"
