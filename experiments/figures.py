@@ -29,7 +29,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import matplotlib.ticker  # noqa: E402
 
-from experiments.aggregate import check_roots, controls_rows, load_sweep, summarize, training_curves  # noqa: E402
+from experiments.aggregate import (  # noqa: E402
+    check_roots,
+    controls_rows,
+    load_sweep,
+    random_policy_return,
+    summarize,
+    training_curves,
+)
 from experiments.sweep import SIZE_RANKS  # noqa: E402
 
 COLORS = {
@@ -306,7 +313,7 @@ def figure_exp5(rows, curves, out) -> str | None:
 
 def figure_go1(rows, curves, out) -> str | None:
     """Go1's Exp 1 return per direction and method, side by side: DR's one model against the Oracle's in each
-    direction, and ST (trained forward) on the backward one."""
+    direction, and ST (trained forward) on the backward one; a dashed line marks the random policy's return."""
     directions = ("forward", "backward")  # env 0, env 1
     methods = [m for m in COLORS if select(rows, family="go1", method=m, metric="online_return_env0")]
     if not methods:
@@ -327,6 +334,15 @@ def figure_go1(rows, curves, out) -> str | None:
             label=LABELS[method],
             capsize=3,
         )
+    # the random policy per direction: random actions move Go1 backward, so its backward return is far from 0
+    ax.hlines(
+        [random_policy_return("go1", env) for env in range(len(directions))],
+        [env - 0.45 for env in range(len(directions))],
+        [env + 0.45 for env in range(len(directions))],
+        color="gray",
+        linestyle="--",
+        label="random policy",
+    )
     ax.set_xticks(range(len(directions)), directions)
     ax.set(ylabel="Exp 1 episode return", title=f"Go1, size {shown[0]['size']}, {_seeds(shown)}")
     ax.legend(fontsize="small")

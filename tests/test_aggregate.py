@@ -108,8 +108,11 @@ def test_go1_figure_draws_each_method_per_direction(tmp_path, monkeypatch):
     rows, curves, _ = aggregate.summarize(runs)
     saved = []
     monkeypatch.setattr(figures.plt.Figure, "savefig", lambda fig, path, **kwargs: saved.append(fig))
+    monkeypatch.setattr(figures, "random_policy_return", lambda family, env_id: {0: 5.0, 1: 50.0}[env_id])  # no rollout
     assert figures.figure_go1(rows, curves, str(tmp_path)) is None
     (ax,) = saved[0].axes
+    (random_line,) = [c for c in ax.collections if c.get_label() == "random policy"]
+    assert [round(float(seg[0][1]), 1) for seg in random_line.get_segments()] == [5.0, 50.0]
     heights = {
         c.get_label(): [round(p.get_height(), 1) for p in c.patches]
         for c in ax.containers
