@@ -564,12 +564,12 @@ class ReplayBuffer:
             if self.pending[env_id]:
                 self.starts[env_id] = torch.cat([self.starts[env_id], torch.tensor(self.pending[env_id])])
                 self.pending[env_id] = []
-        n = self.size
+        n = self.size  # copies: torch.save writes a view's whole storage, here the buffer's full capacity
         return {
-            "obs": self.obs[:n].cpu(),
-            "next_obs": self.next_obs[:n].cpu(),
-            "action": self.action[:n].cpu(),
-            "reward": self.reward[:n].cpu(),
+            "obs": self.obs[:n].to("cpu", copy=True),
+            "next_obs": self.next_obs[:n].to("cpu", copy=True),
+            "action": self.action[:n].to("cpu", copy=True),
+            "reward": self.reward[:n].to("cpu", copy=True),
             "starts": self.starts,
             "size": n,
         }

@@ -1,6 +1,7 @@
 """Runs a user can trust (every script alike): arguments checked before any work, checked checkpoints,
 --resume with the saved arguments, progress and start-up lines, duplicated TensorBoard steps reported."""
 
+import io
 import json
 import os
 import re
@@ -89,6 +90,26 @@ def test_help_lists_the_families(capsys):
     with pytest.raises(SystemExit):
         tyro.cli(claw.Args, args=["--help"])
     assert "walker,reach,push,go1,cheetah_walker" in capsys.readouterr().out.replace(" ", "").replace("\n", "")
+
+
+@pytest.mark.parametrize("script", SCRIPTS, ids=lambda s: s.__name__)
+def test_saved_replay_holds_the_transitions_not_the_capacity(script):
+    """A checkpoint's replay buffer grows with the transitions stored, not with the preallocated capacity (a saved
+    slice would carry its whole storage), and loads back the same."""
+    replay = script.ReplayBuffer(20_000, 8, 2, 1, 3, torch.device("cpu"))
+    for t in range(10):
+        replay.add(0, torch.full((8,), float(t)), torch.ones(2), float(t), torch.full((8,), t + 1.0), first=t == 0)
+    saved = io.BytesIO()
+    torch.save(replay.state_dict(), saved)
+    assert len(saved.getvalue()) < 20_000  # the capacity alone is 20,000 x 19 floats = 1.5 MB
+    saved.seek(0)
+    loaded = script.ReplayBuffer(20_000, 8, 2, 1, 3, torch.device("cpu"))
+    loaded.load_state_dict(torch.load(saved))
+    assert (
+        loaded.size == 10
+        and torch.equal(loaded.obs[:10], replay.obs[:10])
+        and torch.equal(loaded.reward[:10], replay.reward[:10])
+    )
 
 
 @pytest.mark.parametrize("script", [dr, st, posthoc], ids=lambda s: s.__name__)
