@@ -9,6 +9,7 @@ Metrics per run (keys written by every method script):
   offline_return / offline_success Exp 2 at each sweep point x = offline gradient steps
                                    (CLAW, FiLM, Concat: x = 0, their single adaptation pass)
   online_return_env{j}             Exp 1 return in environment j alone
+  offline_return_env{j}            Exp 2 in environment j alone, for families of two environments (Go1, Cheetah/Walker)
 Curves (Exp 1): family-averaged return and success per test-time step, averaged across seeds.
 Training curves (the budget recipe's ST runs, one embodiment per run, and every Exp 1/2 run): the mean
 training-episode return (and success) per window of agent steps, per seed, then mean and 95% CI across
@@ -111,10 +112,18 @@ def run_metrics(run: dict) -> dict:
             metrics[(f"online_{key}", None)] = sum(v for _, v in online) / len(online)
         for step, value in scalars.get(eval_tag("offline", key), []):
             metrics[(f"offline_{key}", step)] = value
-    for tag, values in scalars.items():  # per environment, e.g. Exp 5 scores Cheetah (env 0) alone
+    per_env = {}  # {(protocol, "env{j}"): points}
+    for tag, values in scalars.items():
         parts = tag.split("/")
-        if len(parts) == 4 and parts[:2] == ["eval", "online"] and parts[3] == "episodic_return":
-            metrics[(f"online_return_{parts[2]}", None)] = sum(v for _, v in values) / len(values)
+        if len(parts) == 4 and parts[0] == "eval" and parts[3] == "episodic_return":
+            per_env[(parts[1], parts[2])] = values
+    for (protocol, env), values in per_env.items():  # per environment, e.g. Exp 5 scores Cheetah (env 0) alone
+        if protocol == "online":
+            metrics[(f"online_return_{env}", None)] = sum(v for _, v in values) / len(values)
+        # with two environments (Go1's directions) the family mean hides which one a method fails, also offline
+        elif protocol == "offline" and len({e for _, e in per_env}) <= 2:
+            for step, value in values:
+                metrics[(f"offline_return_{env}", step)] = value
     return metrics
 
 

@@ -96,6 +96,21 @@ def test_go1_claim_compares_each_direction_with_the_oracle():
     assert claim["verdict"] == "not reproduced"
 
 
+def test_offline_returns_per_environment_only_where_a_family_has_two():
+    def sweep(n_envs):
+        scalars = {"eval/offline/episodic_return": [(0, 5.0), (10, 6.0)]}
+        for j in range(n_envs):
+            scalars[f"eval/online/env{j}/episodic_return"] = [(100, 10.0 * j), (200, 10.0 * j + 2)]
+            scalars[f"eval/offline/env{j}/episodic_return"] = [(0, float(j)), (10, j + 0.5)]
+        return aggregate.run_metrics(fake_run("dr", "go1", 1, scalars))
+
+    two = sweep(2)
+    assert two[("offline_return_env1", 0)] == 1.0 and two[("offline_return_env1", 10)] == 1.5
+    assert two[("online_return_env1", None)] == 11.0 and two[("offline_return", 10)] == 6.0
+    six = sweep(6)  # Reach's six goals: online per goal, offline only the family mean
+    assert ("online_return_env5", None) in six and not any(k.startswith("offline_return_env") for k, _ in six)
+
+
 def test_go1_figure_draws_each_method_per_direction(tmp_path, monkeypatch):
     def directions(forward, backward):
         return {"eval/online/env0/episodic_return": [(100, forward)], "eval/online/env1/episodic_return": [(100, backward)]}
