@@ -7,7 +7,7 @@ exp2.png  return (and success) vs offline gradient steps (symlog x); CLAW's pass
 exp3.png  Cheetah/Walker return vs base parameter count (log x) for CLAW, FiLM, Concat; ratio to CLAW
 exp4.png  return vs LoRA rank, and vs adapter size as % of the world model, FiLM/Concat for reference
 exp5.png  Cheetah return: CLAW (joint) vs post-hoc hypernet
-go1.png   Go1 Exp 1 return per running direction (forward, backward) per method: the paper's bimodality claim
+go1.png   Go1 return per running direction (forward, backward) per method, Exp 1 online and Exp 2 unadapted: the bimodality claim
 controls.png  CLAW's (and CLAW + decoder's) return with its own minus with another environment's context, and return vs context size
 training.png  training-episode return vs agent steps: ST per embodiment (experiment budget), and every method of
               Exp 1/2 per family, beside the random policy's return
@@ -312,40 +312,47 @@ def figure_exp5(rows, curves, out) -> str | None:
 
 
 def figure_go1(rows, curves, out) -> str | None:
-    """Go1's Exp 1 return per direction and method, side by side: DR's one model against the Oracle's in each
-    direction, and ST (trained forward) on the backward one; a dashed line marks the random policy's return."""
+    """Go1's return per direction and method, side by side, online (Exp 1) and unadapted (Exp 2 at 0 steps; CLAW's
+    one pass): DR's one model against the Oracle's in each direction, and ST (trained forward) on the backward one;
+    a dashed line marks the random policy's return."""
     directions = ("forward", "backward")  # env 0, env 1
     methods = [m for m in COLORS if select(rows, family="go1", method=m, metric="online_return_env0")]
     if not methods:
         return "go1: no Go1 Exp 1 runs"
-    fig, ax = plt.subplots(figsize=(1.6 * len(methods) + 2.5, 3.5))
-    width = 0.8 / len(methods)
-    shown = []
-    for i, method in enumerate(methods):
-        bars = [select(rows, family="go1", method=method, metric=f"online_return_env{env}") for env in range(2)]
-        bars = [b[0] for b in bars if b]
-        shown += bars
-        ax.bar(
-            [env + (i - (len(methods) - 1) / 2) * width for env in range(len(bars))],
-            [b["mean"] for b in bars],
-            width,
-            yerr=_yerr("return", bars),
-            color=COLORS[method],
-            label=LABELS[method],
-            capsize=3,
+    # random actions move Go1 backward, so the random policy's backward return is far from 0
+    random_returns = [random_policy_return("go1", env) for env in range(len(directions))]
+    fig, axes = plt.subplots(1, 2, figsize=(2.4 * len(methods) + 4, 3.5), sharey=True)
+    width, shown = 0.8 / len(methods), []
+    for ax, protocol, match, label in (
+        (axes[0], "online", {}, "Exp 1, online"),
+        (axes[1], "offline", {"x": 0}, "Exp 2, 0 steps (CLAW: one pass)"),
+    ):
+        for i, method in enumerate(methods):
+            bars = [select(rows, family="go1", method=method, metric=f"{protocol}_return_env{env}", **match) for env in (0, 1)]
+            bars = [b[0] for b in bars if b]
+            shown += bars
+            ax.bar(
+                [env + (i - (len(methods) - 1) / 2) * width for env in range(len(bars))],
+                [b["mean"] for b in bars],
+                width,
+                yerr=_yerr("return", bars),
+                color=COLORS[method],
+                label=LABELS[method],
+                capsize=3,
+            )
+        ax.hlines(
+            random_returns,
+            [env - 0.45 for env in range(len(directions))],
+            [env + 0.45 for env in range(len(directions))],
+            color="gray",
+            linestyle="--",
+            label="random policy",
         )
-    # the random policy per direction: random actions move Go1 backward, so its backward return is far from 0
-    ax.hlines(
-        [random_policy_return("go1", env) for env in range(len(directions))],
-        [env - 0.45 for env in range(len(directions))],
-        [env + 0.45 for env in range(len(directions))],
-        color="gray",
-        linestyle="--",
-        label="random policy",
-    )
-    ax.set_xticks(range(len(directions)), directions)
-    ax.set(ylabel="Exp 1 episode return", title=f"Go1, size {shown[0]['size']}, {_seeds(shown)}")
-    ax.legend(fontsize="small")
+        ax.set_xticks(range(len(directions)), directions)
+        ax.set_title(label, fontsize="medium")
+    axes[0].set_ylabel("episode return")
+    axes[0].legend(fontsize="small")
+    fig.suptitle(f"Go1, size {shown[0]['size']}, {_seeds(shown)}")
     fig.tight_layout()
     fig.savefig(os.path.join(out, "go1.png"), dpi=120)
     return None

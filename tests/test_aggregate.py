@@ -113,7 +113,12 @@ def test_offline_returns_per_environment_only_where_a_family_has_two():
 
 def test_go1_figure_draws_each_method_per_direction(tmp_path, monkeypatch):
     def directions(forward, backward):
-        return {"eval/online/env0/episodic_return": [(100, forward)], "eval/online/env1/episodic_return": [(100, backward)]}
+        return {
+            "eval/online/env0/episodic_return": [(100, forward)],
+            "eval/online/env1/episodic_return": [(100, backward)],
+            "eval/offline/env0/episodic_return": [(0, forward / 2), (10, 0.0)],
+            "eval/offline/env1/episodic_return": [(0, backward / 2), (10, 0.0)],
+        }
 
     runs = [
         fake_run(m, "go1", s, directions(100.0 * k + s, 50.0 * k - s))
@@ -125,16 +130,17 @@ def test_go1_figure_draws_each_method_per_direction(tmp_path, monkeypatch):
     monkeypatch.setattr(figures.plt.Figure, "savefig", lambda fig, path, **kwargs: saved.append(fig))
     monkeypatch.setattr(figures, "random_policy_return", lambda family, env_id: {0: 5.0, 1: 50.0}[env_id])  # no rollout
     assert figures.figure_go1(rows, curves, str(tmp_path)) is None
-    (ax,) = saved[0].axes
-    (random_line,) = [c for c in ax.collections if c.get_label() == "random policy"]
-    assert [round(float(seg[0][1]), 1) for seg in random_line.get_segments()] == [5.0, 50.0]
-    heights = {
-        c.get_label(): [round(p.get_height(), 1) for p in c.patches]
-        for c in ax.containers
-        if c.get_label() in ("DR", "Oracle")
-    }
-    assert heights == {"DR": [101.5, 48.5], "Oracle": [201.5, 98.5]}
-    assert [t.get_text() for t in ax.get_xticklabels()] == ["forward", "backward"]
+    online_ax, offline_ax = saved[0].axes
+    for ax, scale in ((online_ax, 1.0), (offline_ax, 0.5)):  # the offline panel: the sweep's 0-step point
+        (random_line,) = [c for c in ax.collections if c.get_label() == "random policy"]
+        assert [round(float(seg[0][1]), 1) for seg in random_line.get_segments()] == [5.0, 50.0]
+        heights = {
+            c.get_label(): [round(p.get_height(), 2) for p in c.patches]
+            for c in ax.containers
+            if c.get_label() in ("DR", "Oracle")
+        }
+        assert heights == {"DR": [101.5 * scale, 48.5 * scale], "Oracle": [201.5 * scale, 98.5 * scale]}
+        assert [t.get_text() for t in ax.get_xticklabels()] == ["forward", "backward"]
     assert figures.figure_go1(aggregate.summarize(runs[:0])[0], [], str(tmp_path)) == "go1: no Go1 Exp 1 runs"
 
 
