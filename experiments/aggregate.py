@@ -117,11 +117,12 @@ def run_metrics(run: dict) -> dict:
         parts = tag.split("/")
         if len(parts) == 4 and parts[0] == "eval" and parts[3] == "episodic_return":
             per_env[(parts[1], parts[2])] = values
+    # with two environments (Go1's directions) the family mean hides which one a method fails, also offline
+    offline_too = len({env for _, env in per_env}) <= 2
     for (protocol, env), values in per_env.items():  # per environment, e.g. Exp 5 scores Cheetah (env 0) alone
         if protocol == "online":
             metrics[(f"online_return_{env}", None)] = sum(v for _, v in values) / len(values)
-        # with two environments (Go1's directions) the family mean hides which one a method fails, also offline
-        elif protocol == "offline" and len({e for _, e in per_env}) <= 2:
+        elif protocol == "offline" and offline_too:
             for step, value in values:
                 metrics[(f"offline_return_{env}", step)] = value
     return metrics
