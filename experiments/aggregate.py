@@ -213,11 +213,13 @@ def train_env_of(run: dict) -> int | str:
 @functools.cache  # every method's curve on a family shares one reference: roll it out once (minutes on Walker)
 def random_policy_return(family: str, env_id: int | str, episodes: int = 10, seed: int = 0) -> float:
     """Mean return of uniformly random actions (the reference a learning curve must leave behind); env_id "all":
-    the mean over the family's environments, 2 episodes each."""
+    the mean over the family's environments, about 20 episodes in all (at least 2 each)."""
     from common.envs import make_env, num_envs
 
     if env_id == "all":
-        return sum(random_policy_return(family, j, episodes=2, seed=seed) for j in range(num_envs(family))) / num_envs(family)
+        n = num_envs(family)
+        each = max(2, math.ceil(20 / n))  # Go1's two directions: 10 each, the per-direction reference itself
+        return sum(random_policy_return(family, j, episodes=each, seed=seed) for j in range(n)) / n
     env, returns = make_env(family, env_id, seed=seed), []
     env.action_space.seed(seed)
     for episode in range(episodes):

@@ -691,6 +691,16 @@ def test_random_policy_return_is_a_real_rollout():
     assert aggregate.random_policy_return("reach", 0, episodes=2, seed=1) != first
 
 
+def test_a_familys_random_reference_averages_its_environments_over_about_twenty_episodes(monkeypatch):
+    calls, family_mean = [], aggregate.random_policy_return.__wrapped__  # uncached; its per-environment calls recorded
+    monkeypatch.setattr(aggregate, "random_policy_return", lambda f, j, episodes, seed: calls.append(episodes) or 10.0 * j)
+    assert (family_mean("go1", "all"), calls) == (5.0, [10, 10])  # a direction's reference is the per-direction one
+    calls.clear()
+    assert (family_mean("reach", "all"), calls) == (25.0, [4] * 6)
+    calls.clear()
+    assert (family_mean("walker", "all"), calls) == (95.0, [2] * 20)
+
+
 def test_context_probes_patch_claw_only_while_they_run(monkeypatch):
     import claw_tdmpc2 as claw
     from common.envs import make_env
