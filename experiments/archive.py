@@ -130,15 +130,35 @@ def replace_dir(staging: str, target: str) -> None:
 
 def carry_run(run_dir: str, carry: str) -> str:
     """Copies an unfinished run's directory to carry/<run name>/ (replacing an older copy); returns that path. The
-    scripts replace their checkpoint and progress files atomically, so each copied file is whole."""
+    scripts replace their checkpoint and progress files atomically, so each copied file is whole. A run whose
+    training is over (in its evaluation) is carried without replay buffer and context pool, which evaluation never
+    reads: a few MB instead of tens."""
     target = os.path.join(carry, os.path.basename(os.path.normpath(run_dir)))
     staging = target + ".tmp"
     shutil.rmtree(staging, ignore_errors=True)
     shutil.copytree(
         run_dir, staging, ignore=lambda _, names: [n for n in names if n in NOT_CARRIED or n.endswith((".tmp", ".partial"))]
     )
+    if os.path.isfile(os.path.join(staging, WEIGHTS)):
+        drop_training_data_once_trained(os.path.join(staging, WEIGHTS))
     replace_dir(staging, target)
     return target
+
+
+def drop_training_data_once_trained(checkpoint: str) -> None:
+    """Rewrites a checkpoint written after the last training step without its replay buffer and context episodes;
+    its weights, optimiser and random-number state stay, so --resume goes on with the evaluation exactly."""
+    import torch
+
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False, mmap=True)
+    total = (state.get("args") or {}).get("total_timesteps")
+    if total is None or state.get("global_step", -1) < total:  # None: the family's default, unknown here: keep all
+        return
+    if state.get("contexts") is not None:  # (episodes per environment, episodes collected so far)
+        state["contexts"] = ([[] for _ in state["contexts"][0]], state["contexts"][1])
+    state["replay"] = None
+    torch.save(state, checkpoint + ".partial")
+    os.replace(checkpoint + ".partial", checkpoint)
 
 
 def restore_run(saved: str, root: str) -> bool:

@@ -19,7 +19,7 @@ import film_tdmpc2 as film
 import oracle_tdmpc2 as oracle
 import posthoc_tdmpc2 as posthoc
 import st_tdmpc2 as st
-from experiments import aggregate, sweep
+from experiments import aggregate, archive, sweep
 
 SCRIPTS = [claw, dr, st, oracle, film, concat, posthoc]
 
@@ -365,11 +365,15 @@ def test_killed_and_resumed_runs_equal_uninterrupted_ones(name, tmp_path, capsys
             )
         monkeypatch.undo()
         assert torch.load(checkpoint, weights_only=False)["global_step"] == saved_step, attr
+    # resumed from the launcher's carried copy (--carry), which drops replay and context pool once training is over
+    carried = os.path.join(archive.carry_run(os.path.dirname(checkpoint), str(tmp_path / "carry")), "checkpoint.pt")
+    killed_in_evaluation = kills[-1][2] == overrides["total_timesteps"]
+    assert (torch.load(carried, weights_only=False)["replay"] is None) == killed_in_evaluation
     capsys.readouterr()
-    script.main(script.Args(resume=checkpoint))
+    script.main(script.Args(resume=carried))
     out = capsys.readouterr().out
     assert f"at step {kills[-1][2]}" in out
-    resumed = torch.load(checkpoint, weights_only=False)
+    resumed = torch.load(carried, weights_only=False)
     for part in ("model", "hypernet"):
         for key, value in whole.get(part, {}).items():
             assert torch.equal(value, resumed[part][key]), (part, key)
@@ -377,12 +381,13 @@ def test_killed_and_resumed_runs_equal_uninterrupted_ones(name, tmp_path, capsys
     # family results equal the uninterrupted run's
     finished = {"claw": 1, "dr": 1, "posthoc": 0}[name]
     assert (
-        f"resumed the evaluation from {tmp_path / 'killed' / 'evaluation_progress.pt'}: {finished} environments done" in out
+        f"resumed the evaluation from {tmp_path / 'carry' / 'killed' / 'evaluation_progress.pt'}: {finished} environments done"
+        in out
     ) == (finished > 0)
     assert eval_lines(out) == [
         line for line in eval_lines(whole_out) if not any(line.startswith(f"eval env {e}:") for e in range(finished))
     ]
-    assert not os.path.exists(tmp_path / "killed" / "evaluation_progress.pt")
+    assert not os.path.exists(tmp_path / "carry" / "killed" / "evaluation_progress.pt")
 
 
 def test_evaluation_progress_is_taken_up_only_for_the_weights_it_was_saved_with(tmp_path, capsys):
