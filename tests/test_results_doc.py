@@ -4,7 +4,7 @@ claims.md (written by experiments/aggregate.py) has one line per claim, "- **<cl
 one line per comparison, "  - <what>: <difference> [<low>, <high>] (<n>): <verdict>", after a "  - by family: ..." line
 where a claim spans families. Every claim line, family line and comparison line must appear verbatim in RESULTS.md, each claim with its verdict also in the "At a glance" section,
 and the intervals and verdicts are checked one by one so that a failure names what differs. The figures and files
-RESULTS.md links to must exist, and RESULTS.md must stay under 25 KB. The tables in results/learn/runs are what
+RESULTS.md links to must exist, its counts of archived runs must be the archive's, and RESULTS.md must stay under 25 KB. The tables in results/learn/runs are what
 experiments/aggregate.py writes from the archived runs there, byte for byte."""
 
 from __future__ import annotations
@@ -123,6 +123,20 @@ def test_linked_files_exist():
 
 def test_results_is_at_most_25_kb():
     assert os.path.getsize(RESULTS) <= 25 * 1024
+
+
+def test_results_counts_are_the_archives():
+    """The run, resume and weight counts RESULTS.md gives are those of the archived runs' folders."""
+    import json
+
+    runs = sorted(n for n in os.listdir(ARCHIVE) if os.path.isfile(os.path.join(ARCHIVE, n, "run.json")))
+    resumed = sum(json.loads(read(os.path.join(ARCHIVE, n, "run.json"))).get("resumed") is True for n in runs)
+    training = [n for n in runs if not n.startswith("controls")]  # the controls only evaluate a checkpoint
+    weighed = sum(os.path.isfile(os.path.join(ARCHIVE, n, "checkpoint.pt")) for n in training)
+    text = " ".join(read(RESULTS).split())  # line breaks as spaces
+    assert f"the {len(runs)} runs archived" in text
+    assert f"in {resumed} of the {len(runs)} `run.json`" in text
+    assert f"{weighed} of the {len(training)} training runs keep their weights" in text
 
 
 # what experiments/aggregate.py writes from an archive, all committed beside its runs
