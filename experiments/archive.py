@@ -157,7 +157,7 @@ def drop_training_data_once_trained(checkpoint: str) -> None:
     if state.get("contexts") is not None:  # (episodes per environment, episodes collected so far)
         state["contexts"] = ([[] for _ in state["contexts"][0]], state["contexts"][1])
     state["replay"] = None
-    torch.save(state, checkpoint + ".partial")
+    torch.save(state, checkpoint + ".partial")  # not over the file itself: the loaded tensors still map it
     os.replace(checkpoint + ".partial", checkpoint)
 
 

@@ -4,8 +4,9 @@ claims.md (written by experiments/aggregate.py) has one line per claim, "- **<cl
 one line per comparison, "  - <what>: <difference> [<low>, <high>] (<n>): <verdict>", after a "  - by family: ..." line
 where a claim spans families. Every claim line, family line and comparison line must appear verbatim in RESULTS.md, each claim with its verdict also in the "At a glance" section,
 and the intervals and verdicts are checked one by one so that a failure names what differs. The figures and files
-RESULTS.md links to must exist, its counts of archived runs must be the archive's, and RESULTS.md must stay under 25 KB. The tables in results/learn/runs are what
-experiments/aggregate.py writes from the archived runs there, byte for byte."""
+RESULTS.md links to must exist, its counts of archived runs must be the archive's, and RESULTS.md must stay under
+25 KB. The tables in results/learn/runs are what experiments/aggregate.py writes from the archived runs there, byte
+for byte."""
 
 from __future__ import annotations
 
